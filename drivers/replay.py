@@ -1,0 +1,107 @@
+"""`dataset_replay`: plays a dataset (an MCAP file that is a ROS 2 bag) into the pipeline.
+
+Messages leave as their recorded CDR bytes, in log-time order, as fast as possible or paced
+at `speed` times real time. The rig description (MCAP metadata `rover.setup`) is sent once
+on `setup`, stamped at the first message.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from rover.errors import BadInput
+from rover.messages import Raw, header, message_class
+from rover.operator import Emit, Out, Source, Watermark
+
+SETUP_METADATA = "rover.setup"
+DEFAULT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
+
+
+@dataclass(frozen=True)
+class ReplayParams:
+    path: str = ""
+    speed: Literal["max"] | float = "max"
+    topics: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TOPICS))
+
+
+class DatasetReplay(Source):
+    """Replays `/csi`, `/imu/data` and `/odom` of a dataset, and its rig description."""
+
+    outputs = {
+        "csi": Out("rover_msgs/msg/CsiFrame", "raw CSI Tool records"),
+        "imu": Out("sensor_msgs/msg/Imu", "IMU samples"),
+        "odom": Out("nav_msgs/msg/Odometry", "wheel odometry, when recorded"),
+        "setup": Out("rover_msgs/msg/RigSetup", "the rig description, once at the start"),
+    }
+    Params = ReplayParams
+
+    def __init__(self, params: ReplayParams | None = None):
+        super().__init__(params)
+        p = self.params
+        if not p.path:
+            raise BadInput("dataset_replay: no dataset given (pass --dataset PATH or set params.path)")
+        self.path = Path(p.path)
+        if not self.path.is_file():
+            raise BadInput(f"{self.path}: no such dataset file")
+        if p.speed != "max" and not p.speed > 0:
+            raise BadInput(f"dataset_replay: speed must be 'max' or a positive number, got {p.speed!r}")
+        for port in p.topics:
+            if port not in self.outputs or port == "setup":
+                raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, imu, odom)")
+        self._port_of = {topic: port for port, topic in p.topics.items()}
+        self._setup_yaml, self._channels = self._inspect()
+
+    def _inspect(self) -> tuple[str | None, dict[str, str]]:
+        """Read the summary: which wanted topics exist with the right types, and the rig description."""
+        try:
+            with self.path.open("rb") as f:
+                reader = make_reader(f)
+                summary = reader.get_summary()
+                metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+        except (McapError, OSError, ValueError, EOFError) as exc:
+            raise BadInput(f"{self.path}: not a readable MCAP dataset: {exc}") from None
+        if summary is None:
+            raise BadInput(f"{self.path}: MCAP file has no summary section (was it closed properly?)")
+        found: dict[str, str] = {}
+        for channel in summary.channels.values():
+            port = self._port_of.get(channel.topic)
+            if port is None:
+                continue
+            schema = summary.schemas.get(channel.schema_id)
+            wanted = self.outputs[port].type
+            if schema is None or schema.name != wanted or channel.message_encoding != "cdr":
+                got = f"{schema.name if schema else 'no schema'} ({channel.message_encoding})"
+                raise BadInput(f"{self.path}: topic {channel.topic} is {got}, expected {wanted} (cdr)")
+            found[channel.topic] = port
+        setup = metadata.get(SETUP_METADATA, {}).get("yaml")
+        return setup, found
+
+    def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
+        speed = self.params.speed
+        RigSetup = message_class("rover_msgs/msg/RigSetup")
+        started_wall = started_log = None
+        with self.path.open("rb") as f:
+            reader = make_reader(f)
+            for _schema, channel, message in reader.iter_messages(topics=list(self._channels), log_time_order=True):
+                if stop.is_set():
+                    return
+                if started_log is None:
+                    started_log, started_wall = message.log_time, time.monotonic()
+                    if self._setup_yaml is not None:
+                        yield Emit("setup", RigSetup(header=header(message.log_time, "base_link"),
+                                                     setup_yaml=self._setup_yaml), message.log_time)
+                elif speed != "max":
+                    due = started_wall + (message.log_time - started_log) / 1e9 / speed
+                    while (wait := due - time.monotonic()) > 0:
+                        if stop.wait(min(wait, 0.1)):
+                            return
+                port = self._channels[channel.topic]
+                yield Emit(port, Raw(self.outputs[port].type, message.data))

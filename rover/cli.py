@@ -1,0 +1,130 @@
+"""The `rover` command. Library errors become one line on stderr and an exit status:
+2 for bad input, 1 for a failed run, 130/143 after an interrupt."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from rover import __version__
+from rover.errors import BadInput, RoverError, SpecError
+from rover.yamlpos import parse_scalar
+
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+
+
+def default_pipeline() -> Path:
+    """The pipeline shipped inside the package (identical to the repository's pipeline.yaml)."""
+    return Path(str(resources.files("rover").joinpath("pipeline.yaml")))
+
+
+def _overrides(args: argparse.Namespace) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise BadInput(f"--set {item!r}: expected NAME=VALUE")
+        values[key.strip()] = parse_scalar(value)
+    if getattr(args, "dataset", None) is not None:
+        values["dataset"] = args.dataset
+    if getattr(args, "output", None) is not None:
+        values["output"] = args.output
+    return values
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from rover.validation import load_and_check
+
+    problems: list[str] = []
+    for file in args.files:
+        try:
+            print(load_and_check(file, _overrides(args)).summary())
+        except SpecError as exc:
+            problems += [str(d) for d in exc.diagnostics]
+        except BadInput as exc:
+            problems.append(str(exc))
+    for line in problems:
+        print(line, file=sys.stderr)
+    if problems:
+        print(f"{len(problems)} problem{'s' if len(problems) > 1 else ''} found", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from rover.runtime import run
+    from rover.validation import load_and_check
+
+    pipeline = load_and_check(args.pipeline or default_pipeline(), _overrides(args))
+    return run(pipeline, args.host)
+
+
+def cmd_graph(args: argparse.Namespace) -> int:
+    from rover import graph
+    from rover.validation import load_and_check
+
+    pipeline = load_and_check(args.pipeline or default_pipeline(), _overrides(args))
+    sys.stdout.write(graph.dot(pipeline) if args.format == "dot" else graph.mermaid(pipeline))
+    return 0
+
+
+def _add_set(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline")
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="rover", description="Localize a robot and WiFi backscatter tags "
+                                 "with AoA-IMU SLAM, as a Zenoh dataflow.")
+    ap.add_argument("--version", action="version", version=f"rover {__version__}")
+    ap.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    ap.add_argument("-q", "--quiet", action="store_true", help="only errors")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run a pipeline (all of it, or one host's share)")
+    p.add_argument("pipeline", nargs="?", help="pipeline file (default: the one shipped with rover)")
+    p.add_argument("--host", help="run only the operators placed on this host")
+    p.add_argument("--dataset", help="same as --set dataset=PATH")
+    p.add_argument("--output", help="same as --set output=DIR")
+    _add_set(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("check", help="validate pipeline files; report every problem as FILE:LINE:COL")
+    p.add_argument("files", nargs="+", metavar="FILE")
+    _add_set(p)
+    p.set_defaults(func=cmd_check)
+
+    p = sub.add_parser("graph", help="print the pipeline as Mermaid (default) or DOT")
+    p.add_argument("pipeline", nargs="?", help="pipeline file (default: the one shipped with rover)")
+    p.add_argument("--format", choices=("mermaid", "dot"), default="mermaid")
+    _add_set(p)
+    p.set_defaults(func=cmd_graph)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="rover: %(levelname)s: %(message)s")
+    try:
+        return args.func(args)
+    except SpecError as exc:
+        for d in exc.diagnostics:
+            print(d, file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except BadInput as exc:
+        print(f"rover: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except RoverError as exc:
+        print(f"rover: error: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

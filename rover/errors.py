@@ -1,0 +1,52 @@
+"""Exceptions of the library; only the CLI turns them into messages and exit codes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+class RoverError(Exception):
+    """Base of every error Rover raises on purpose."""
+
+
+class BadInput(RoverError):
+    """A user mistake: a bad file, name, endpoint or value. The CLI exits with status 2."""
+
+
+@dataclass(frozen=True, order=True)
+class Diagnostic:
+    """One problem in a file, with its 1-based position (0 when unknown)."""
+
+    file: str
+    line: int
+    col: int
+    message: str
+
+    def __str__(self) -> str:
+        if self.line:
+            return f"{self.file}:{self.line}:{self.col}: {self.message}"
+        return f"{self.file}: {self.message}"
+
+
+class SpecError(BadInput):
+    """A pipeline or setup file with one or more problems, all collected before raising."""
+
+    def __init__(self, diagnostics: list[Diagnostic]):
+        self.diagnostics = sorted(diagnostics)
+        super().__init__("\n".join(str(d) for d in self.diagnostics))
+
+
+class TransportError(BadInput):
+    """An endpoint that cannot be listened on or reached."""
+
+
+class OperatorDefinitionError(RoverError):
+    """An operator class whose declaration is inconsistent (a programming error, not user input)."""
+
+
+class OperatorFailed(RoverError):
+    """An operator's handler raised while processing a message."""
+
+
+class PeerLost(RoverError):
+    """Another host of a distributed run left before the end of the stream."""

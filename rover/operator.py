@@ -1,0 +1,112 @@
+"""The operator model: declared typed ports, typed params, and pure handlers.
+
+An operator never touches the transport or files: the runtime delivers each input message
+to `on_input` in event-time order and publishes what the handler yields. Sources (drivers
+at the edge of the graph) yield messages from `run` instead.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple
+
+from rover.errors import OperatorDefinitionError
+from rover.messages import ANY, known_type
+
+
+@dataclass(frozen=True)
+class In:
+    """An input port: its message type, whether it must be wired, and whether it gets raw CDR bytes."""
+
+    type: str
+    required: bool = True
+    raw: bool = False
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Out:
+    """An output port and its message type."""
+
+    type: str
+    doc: str = ""
+
+
+class Emit(NamedTuple):
+    """A message an operator sends on one of its output ports; `stamp_ns` defaults to the header stamp."""
+
+    port: str
+    msg: Any
+    stamp_ns: int | None = None
+
+
+class Watermark(NamedTuple):
+    """A promise from a source: nothing it sends later is stamped before `stamp_ns`."""
+
+    stamp_ns: int
+
+
+@dataclass(frozen=True)
+class NoParams:
+    """Parameters of an operator that takes none."""
+
+
+class Operator:
+    """Base class of every operator.
+
+    Subclasses declare `inputs`, `outputs` and a `Params` dataclass, and implement `on_input`.
+    `variadic` accepts input ports under any name with the given spec (recorders).
+    `lateness_s` bounds how far before the input being handled an output may be stamped
+    (the runtime sends watermarks that much behind).
+    """
+
+    inputs: ClassVar[Mapping[str, In]] = {}
+    outputs: ClassVar[Mapping[str, Out]] = {}
+    variadic: ClassVar[In | None] = None
+    Params: ClassVar[type] = NoParams
+    lateness_s: ClassVar[float] = 0.0
+
+    def __init__(self, params: Any = None) -> None:
+        self.params = params if params is not None else self.Params()
+
+    def on_input(self, port: str, msg: Any, stamp_ns: int) -> Iterable[Emit]:
+        """Handle one message; yield or return the messages to send."""
+        return ()
+
+    def on_end(self) -> Iterable[Emit]:
+        """All inputs reached end of stream: flush what is pending."""
+        return ()
+
+    def close(self) -> None:
+        """Release resources; called once at the end of the run, also after an interrupt."""
+
+    @classmethod
+    def input_spec(cls, port: str) -> In | None:
+        return cls.inputs.get(port) or cls.variadic
+
+    @classmethod
+    def check_definition(cls) -> None:
+        """Raise OperatorDefinitionError when the class's declarations are inconsistent."""
+        if not (isinstance(cls.Params, type) and dataclasses.is_dataclass(cls.Params)):
+            raise OperatorDefinitionError(f"{cls.__qualname__}.Params must be a dataclass")
+        ports = [*cls.inputs.values(), *cls.outputs.values(), *([cls.variadic] if cls.variadic else [])]
+        for port in ports:
+            if not known_type(port.type):
+                raise OperatorDefinitionError(f"{cls.__qualname__}: unknown message type {port.type!r}")
+        for name, port in cls.outputs.items():
+            if port.type == ANY:
+                raise OperatorDefinitionError(f"{cls.__qualname__}: output {name!r} needs a concrete type")
+
+
+class Source(Operator):
+    """An operator with no inputs that produces messages (dataset replay, live drivers).
+
+    `run` yields Emit items in non-decreasing stamp order, and Watermark items when it is
+    silent, until it is exhausted or `stop` is set.
+    """
+
+    def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
+        raise NotImplementedError

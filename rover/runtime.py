@@ -1,0 +1,376 @@
+"""Running a checked pipeline: operators on real Zenoh sessions, in event-time order.
+
+One process runs every operator (or, with a host name, that host's share) on one Zenoh
+session. Each operator has a thread and an inbox; subscribers only enqueue. Sources start
+once every host has declared its subscribers, so nothing is published into the void, and a
+host leaves only when every host is done, so nothing in flight is cut off.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from rover.errors import OperatorFailed, PeerLost
+from rover.messages import ANY, Raw, deserialize, has_header, serialize, stamp_ns
+from rover.operator import Emit, Operator, Source, Watermark
+from rover.scheduler import INF, EventTimeMerger
+from rover.validation import Node, Pipeline
+from rover.transport import codec, keys
+from rover.transport.session import SessionSpec, open_session
+
+log = logging.getLogger("rover")
+
+WATERMARK_INTERVAL_NS = 100_000_000
+"""Event time between watermarks on an output that has nothing else to say."""
+DRAIN_S = 1.5
+"""After an interrupt, how long operators may drain what is queued before the run is cut."""
+POLL_S = 0.05
+READY_LOG_S = 5.0
+
+
+@dataclass
+class Stats:
+    """What one operator received, sent and dropped, per port."""
+
+    received: Counter = field(default_factory=Counter)
+    sent: Counter = field(default_factory=Counter)
+    dropped: Counter = field(default_factory=Counter)
+    late: Counter = field(default_factory=Counter)
+
+    def line(self, name: str) -> str:
+        def fmt(c: Counter) -> str:
+            return ", ".join(f"{k}={v}" for k, v in sorted(c.items())) or "-"
+        text = f"{name}: in {fmt(self.received)}; out {fmt(self.sent)}"
+        if self.dropped:
+            text += f"; DROPPED {fmt(self.dropped)}"
+        if self.late:
+            text += f"; late {fmt(self.late)}"
+        return text
+
+
+class Output:
+    """One output port: its publisher, and the watermark promised on it so far."""
+
+    def __init__(self, session: zenoh.Session, key: str, typename: str):
+        self.key = key
+        self.typename = typename
+        self.publisher = session.declare_publisher(
+            key, encoding=codec.encoding(typename), congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE)
+        self.last_ns: float = -INF
+        self.mark_ns: int = -(2**63)
+
+    def send(self, payload: bytes, stamp: int) -> None:
+        self.publisher.put(payload, attachment=codec.attachment(codec.Kind.DATA, stamp, self.mark_ns))
+        self.last_ns = max(self.last_ns, stamp)
+
+    def watermark(self, mark: int) -> None:
+        """Promise `mark`; tell consumers when this port has been silent for a while."""
+        if mark <= self.mark_ns:
+            return
+        self.mark_ns = mark
+        if mark - self.last_ns >= WATERMARK_INTERVAL_NS:
+            self.publisher.put(b"", encoding=codec.control_encoding(),
+                               attachment=codec.attachment(codec.Kind.WATERMARK, mark, mark))
+            self.last_ns = mark
+
+    def end(self) -> None:
+        last = int(self.last_ns) if self.last_ns != -INF else 0
+        self.publisher.put(b"", encoding=codec.control_encoding(),
+                           attachment=codec.attachment(codec.Kind.END, last, self.mark_ns))
+
+
+class Task:
+    """An operator (or source) running in its own thread."""
+
+    def __init__(self, node: Node, pipeline: str, session: zenoh.Session, stop: threading.Event,
+                 abort: threading.Event):
+        self.node = node
+        self.name = node.name
+        self.op: Operator = node.build()
+        self.stats = Stats()
+        self.stop = stop
+        self.abort = abort
+        self.error: BaseException | None = None
+        self.done = threading.Event()
+        self.outputs = {port: Output(session, keys.port_key(pipeline, node.name, port), out.type)
+                        for port, out in node.cls.outputs.items()}
+        self.thread = threading.Thread(target=self._main, name=f"rover-{node.name}", daemon=True)
+
+    def _main(self) -> None:
+        try:
+            self.run()
+        except BaseException as exc:  # noqa: BLE001 - reported by the runner as one line
+            self.error = exc
+            self.stop.set()
+        finally:
+            for out in self.outputs.values():
+                try:
+                    out.end()
+                except zenoh.ZError:
+                    pass
+            self.done.set()
+
+    def run(self) -> None:
+        raise NotImplementedError
+
+    def publish(self, emitted: Iterable[Emit] | None, default_stamp: int) -> None:
+        for item in emitted or ():
+            port, msg, stamp = item
+            out = self.outputs.get(port)
+            if out is None:
+                raise OperatorFailed(f"operator {self.name!r} emitted on unknown output {port!r}")
+            typename = msg.typename if isinstance(msg, Raw) else getattr(msg, "__msgtype__", None)
+            if typename != out.typename:
+                raise OperatorFailed(f"operator {self.name!r} emitted {typename} on output {port!r}, "
+                                     f"which is declared {out.typename}")
+            if stamp is None:
+                stamp = stamp_ns(msg) if has_header(typename) else default_stamp
+            if stamp < out.mark_ns:
+                self.stats.late[port] += 1
+            out.send(serialize(msg, typename), stamp)
+            self.stats.sent[port] += 1
+
+    def advance(self, mark: float) -> None:
+        if mark == INF or mark == -INF:
+            return
+        for out in self.outputs.values():
+            out.watermark(int(mark))
+
+
+class SourceTask(Task):
+    def run(self) -> None:
+        source: Source = self.op  # type: ignore[assignment]
+        clock = -INF
+        for item in source.run(self.stop):
+            if self.abort.is_set():
+                break
+            if isinstance(item, Watermark):
+                clock = max(clock, item.stamp_ns)
+            else:
+                self.publish((item,), int(clock) if clock != -INF else 0)
+                port, msg, stamp = item
+                clock = max(clock, stamp if stamp is not None else self.outputs[port].last_ns)
+            self.advance(clock)
+            if self.stop.is_set():
+                break
+        self._finish()
+
+    def _finish(self) -> None:
+        self.publish(self.op.on_end(), 0)
+
+
+class OperatorTask(Task):
+    def __init__(self, node: Node, pipeline: str, session: zenoh.Session, stop: threading.Event,
+                 abort: threading.Event):
+        super().__init__(node, pipeline, session, stop, abort)
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self.merger = EventTimeMerger(list(node.spec.inputs))
+        self.ports = {port: node.cls.input_spec(port) for port in node.spec.inputs}
+        self.subscribers = [
+            session.declare_subscriber(keys.port_key(pipeline, wire.source, wire.source_port),
+                                       self._enqueue_for(port))
+            for port, wire in node.spec.inputs.items()]
+        self._warned: set[str] = set()
+
+    def _enqueue_for(self, port: str):
+        inbox = self.inbox
+
+        def enqueue(sample: zenoh.Sample) -> None:
+            att = sample.attachment
+            inbox.put((port, str(sample.encoding), sample.payload.to_bytes(), att.to_bytes() if att else None))
+        return enqueue
+
+    def _drop(self, port: str, reason: str) -> None:
+        self.stats.dropped[f"{port}:{reason}"] += 1
+        n = self.stats.dropped[f"{port}:{reason}"]
+        if n == 1 or n % 1000 == 0:
+            log.warning("operator %r, input %r: dropped %d message(s): %s", self.name, port, n, reason)
+
+    def _accept(self, port: str, encoding: str, payload: bytes, att: bytes | None) -> None:
+        try:
+            kind, stamp, mark = codec.read_attachment(att)
+        except codec.CodecError as exc:
+            self._drop(port, str(exc))
+            return
+        if kind == codec.Kind.END:
+            self.merger.end(port)
+            return
+        self.merger.watermark(port, mark)
+        if kind == codec.Kind.WATERMARK:
+            return
+        spec = self.ports[port]
+        typename = codec.schema_of(encoding)
+        if spec.type != ANY and typename != spec.type:
+            self._drop(port, f"type {typename or 'unknown'} where {spec.type} was expected")
+            return
+        try:
+            msg = deserialize(payload, typename)
+        except Exception:  # noqa: BLE001 - any decoding failure of foreign bytes is a drop, never a crash
+            self._drop(port, f"bytes that do not decode as {typename or spec.type}")
+            return
+        self.stats.received[port] += 1
+        self.merger.push(port, stamp, Raw(typename, payload) if spec.raw else msg)
+
+    def run(self) -> None:
+        merger = self.merger
+        op = self.op
+        while not merger.finished:
+            if self.abort.is_set():
+                return
+            try:
+                item = self.inbox.get(timeout=POLL_S)
+            except queue.Empty:
+                continue
+            self._accept(*item)
+            for port, stamp, msg in merger.pop_ready():
+                self.publish(op.on_input(port, msg, stamp), stamp)
+            self.advance(merger.safe_time() - op.lateness_s * 1e9)
+        self.publish(op.on_end(), int(max(o.last_ns for o in self.outputs.values())) if self.outputs else 0)
+
+
+class Runner:
+    """Runs the operators of one host (or all of them) until end of stream or an interrupt."""
+
+    def __init__(self, pipeline: Pipeline, host: str | None = None):
+        self.pipeline = pipeline
+        self.host = host
+        self.distributed = host is not None and bool(pipeline.spec.hosts)
+        self.nodes = [n for n in pipeline.nodes.values() if not self.distributed or n.spec.host == host]
+        self.stop = threading.Event()
+        self.abort = threading.Event()
+        self.interrupted: int | None = None
+        self.tasks: list[Task] = []
+        self._host_states: dict[str, set[str]] = {"ready": set(), "done": set(), "lost": set()}
+        self._host_lock = threading.Condition()
+
+    def session_spec(self) -> SessionSpec:
+        if not self.distributed:
+            return SessionSpec()
+        h = self.pipeline.spec.hosts[self.host]
+        return SessionSpec(h.listen, h.connect, h.connect_timeout_s, self.host)
+
+    def request_stop(self, signum: int) -> None:
+        self.interrupted = signum
+        self.stop.set()
+
+    def run(self) -> int:
+        """Run to the end; return the exit status (0, or 128 + signal after an interrupt)."""
+        handlers = self._install_signals()
+        try:
+            with open_session(self.session_spec()) as session:
+                self._run(session)
+        finally:
+            for sig, old in handlers.items():
+                signal.signal(sig, old)
+        return 128 + self.interrupted if self.interrupted else 0
+
+    def _install_signals(self) -> dict:
+        if threading.current_thread() is not threading.main_thread():
+            return {}
+        old = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, lambda signum, _frame: self.request_stop(signum))
+        return old
+
+    def _run(self, session: zenoh.Session) -> None:
+        name = self.pipeline.name
+        try:
+            self.tasks = [OperatorTask(n, name, session, self.stop, self.abort) for n in self.nodes
+                          if not issubclass(n.cls, Source)]
+            self.tasks += [SourceTask(n, name, session, self.stop, self.abort) for n in self.nodes
+                           if issubclass(n.cls, Source)]
+            watcher = None
+            if self.distributed:
+                watcher = session.liveliness().declare_subscriber(keys.host_tokens(name), self._on_host_token,
+                                                                  history=True)
+                ready = session.liveliness().declare_token(keys.host_token(name, self.host, "ready"))
+                self._wait_hosts("ready")
+            for task in self.tasks:
+                task.thread.start()
+            self._wait_tasks()
+            if self.distributed and not self.abort.is_set():
+                done = session.liveliness().declare_token(keys.host_token(name, self.host, "done"))
+                self._wait_hosts("done")
+                done.undeclare()
+            if watcher is not None:
+                ready.undeclare()
+                watcher.undeclare()
+        finally:
+            self.abort.set()
+            for task in self.tasks:
+                task.thread.join(timeout=1.0)
+            for task in self.tasks:
+                try:
+                    task.op.close()
+                except Exception as exc:  # noqa: BLE001 - reported, the other operators still close
+                    log.error("operator %r failed to close: %s", task.name, exc)
+            for task in self.tasks:
+                log.info("%s", task.stats.line(task.name))
+                if task.stats.dropped:
+                    log.warning("%s", task.stats.line(task.name))
+        failed = next((t for t in self.tasks if t.error is not None), None)
+        if failed is not None:
+            exc = failed.error
+            if isinstance(exc, OperatorFailed):
+                raise exc
+            raise OperatorFailed(f"operator {failed.name!r} ({failed.node.spec.uses}) failed: "
+                                 f"{type(exc).__name__}: {exc}") from exc
+
+    def _wait_tasks(self) -> None:
+        deadline = None
+        while not all(t.done.is_set() for t in self.tasks):
+            if self.stop.is_set() and deadline is None:
+                deadline = time.monotonic() + DRAIN_S
+            if deadline is not None and time.monotonic() > deadline:
+                self.abort.set()
+                break
+            if self._host_states["lost"]:
+                lost = ", ".join(sorted(self._host_states["lost"]))
+                self.abort.set()
+                raise PeerLost(f"host {lost} left before the end of the stream")
+            time.sleep(POLL_S)
+
+    def _on_host_token(self, sample: zenoh.Sample) -> None:
+        host, state = keys.parse_host_token(str(sample.key_expr))
+        with self._host_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._host_states.setdefault(state, set()).add(host)
+            elif state == "ready" and host not in self._host_states["done"]:
+                self._host_states["lost"].add(host)
+            self._host_lock.notify_all()
+
+    def _wait_hosts(self, state: str) -> None:
+        wanted = set(self.pipeline.hosts_in_use())
+        last_log = time.monotonic()
+        with self._host_lock:
+            while not wanted <= self._host_states[state]:
+                if self.stop.is_set() and state == "ready":
+                    return
+                if self._host_states["lost"] and state == "done":
+                    lost = ", ".join(sorted(self._host_states["lost"]))
+                    raise PeerLost(f"host {lost} left before the end of the stream")
+                if time.monotonic() - last_log > READY_LOG_S:
+                    missing = ", ".join(sorted(wanted - self._host_states[state]))
+                    log.info("host %s: waiting for host(s) %s to be %s", self.host, missing, state)
+                    last_log = time.monotonic()
+                self._host_lock.wait(timeout=POLL_S)
+
+
+def run(pipeline: Pipeline, host: str | None = None) -> int:
+    """Run a checked pipeline (all of it, or one host's share); return the exit status."""
+    if host is not None and pipeline.spec.hosts and host not in pipeline.spec.hosts:
+        from rover.errors import BadInput
+        raise BadInput(f"{pipeline.spec.file}: --host {host!r} is not declared under hosts: "
+                       f"({', '.join(pipeline.spec.hosts)})")
+    return Runner(pipeline, host).run()

@@ -1,0 +1,252 @@
+"""Checking a pipeline against its operators: every problem at once, each with file:line:col.
+
+The result of a clean check is a `Pipeline`: the spec with operator classes, typed params and
+the message type of every wire resolved, which is all the runtime needs.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rover import params as P
+from rover.errors import Diagnostic, SpecError
+from rover.messages import ANY
+from rover.operator import In, Operator, Source
+from rover.registry import BUILTINS, UnknownOperator, resolve
+from rover.spec import OperatorSpec, PipelineSpec, Wire, did_you_mean, parse, read_document
+
+
+@dataclass
+class Node:
+    """One operator of a checked pipeline."""
+
+    spec: OperatorSpec
+    cls: type[Operator]
+    params: Any
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def input_type(self, port: str) -> str:
+        spec = self.cls.input_spec(port)
+        return spec.type if spec else ANY
+
+    def output_type(self, port: str) -> str:
+        return self.cls.outputs[port].type
+
+    def build(self) -> Operator:
+        return self.cls(self.params)
+
+
+@dataclass
+class Pipeline:
+    """A pipeline that passed every check."""
+
+    spec: PipelineSpec
+    nodes: dict[str, Node]
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def hosts_in_use(self) -> list[str]:
+        return sorted({n.spec.host for n in self.nodes.values() if n.spec.host})
+
+    def consumers(self, source: str, port: str) -> list[tuple[Node, Wire]]:
+        return [(n, w) for n in self.nodes.values() for w in n.spec.inputs.values()
+                if w.source == source and w.source_port == port]
+
+    def summary(self) -> str:
+        wires = sum(len(n.spec.inputs) for n in self.nodes.values())
+        hosts = self.hosts_in_use()
+        where = f"on {len(hosts)} hosts ({', '.join(hosts)})" if hosts else "in one process"
+        return f"{self.spec.file}: ok: pipeline {self.name!r}, {len(self.nodes)} operators, {wires} wires, {where}"
+
+
+def _params(doc, spec: OperatorSpec, cls: type[Operator], problems: list[Diagnostic]) -> Any:
+    fields = P.fields(cls.Params)
+    hints = P.resolved_types(cls.Params)
+    values: dict[str, Any] = {}
+    base = ("operators", spec.name, "params")
+    for key, value in spec.params.items():
+        if key not in fields:
+            known = ", ".join(fields) or "none"
+            problems.append(doc.diag(base + (key,), f"operator {spec.name!r} ({spec.uses}) has no param {key!r}"
+                                     f"{did_you_mean(key, fields)} (params: {known})", key=True))
+            continue
+        try:
+            values[key] = P.coerce(value, hints[key])
+        except P.ParamTypeError as exc:
+            problems.append(doc.diag(base + (key,), f"param {key!r} of operator {spec.name!r}: {exc}"))
+    missing = [k for k, f in fields.items() if k not in spec.params and not P.has_default(f)]
+    for key in missing:
+        problems.append(doc.diag(("operators", spec.name), f"operator {spec.name!r} ({spec.uses}) needs param "
+                                 f"{key!r} ({P.type_label(hints[key])})", key=True))
+    if missing or len(values) != len(spec.params):
+        return None
+    try:
+        return cls.Params(**values)
+    except (TypeError, ValueError) as exc:
+        problems.append(doc.diag(base, f"params of operator {spec.name!r}: {exc}"))
+        return None
+
+
+def _check_ports(doc, nodes: dict[str, Node], specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
+    for node in nodes.values():
+        base = ("operators", node.name, "inputs")
+        cls = node.cls
+        for port, wire in node.spec.inputs.items():
+            spec_in: In | None = cls.input_spec(port)
+            if spec_in is None:
+                known = ", ".join(cls.inputs) or "none"
+                problems.append(doc.diag(base + (port,), f"operator {node.name!r} ({node.spec.uses}) has no input "
+                                         f"{port!r}{did_you_mean(port, cls.inputs)} (inputs: {known})", key=True))
+                continue
+            if wire.source not in specs:
+                problems.append(doc.diag(base + (port,), f"input {port!r} is wired to unknown operator "
+                                         f"{wire.source!r}{did_you_mean(wire.source, specs)}"))
+                continue
+            source = nodes.get(wire.source)
+            if source is None:
+                continue
+            if wire.source_port not in source.cls.outputs:
+                known = ", ".join(source.cls.outputs) or "none"
+                problems.append(doc.diag(base + (port,), f"operator {wire.source!r} ({source.spec.uses}) has no output "
+                                         f"{wire.source_port!r}{did_you_mean(wire.source_port, source.cls.outputs)} "
+                                         f"(outputs: {known})"))
+                continue
+            out_type = source.output_type(wire.source_port)
+            if spec_in.type not in (ANY, out_type):
+                problems.append(doc.diag(base + (port,), f"message type mismatch: {wire.text} sends {out_type} but "
+                                         f"input {port!r} of {node.name!r} takes {spec_in.type}"))
+        for port, spec_in in cls.inputs.items():
+            if spec_in.required and port not in node.spec.inputs:
+                problems.append(doc.diag(("operators", node.name), f"required input {port!r} ({spec_in.type}) of "
+                                         f"operator {node.name!r} is not wired", key=True))
+        if issubclass(cls, Source) and node.spec.inputs:
+            problems.append(doc.diag(base, f"operator {node.name!r} ({node.spec.uses}) is a source and takes no inputs",
+                                     key=True))
+
+
+def _check_cycles(doc, specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
+    WHITE, GREY, BLACK = 0, 1, 2
+    state = {name: WHITE for name in specs}
+    stack: list[str] = []
+
+    def visit(name: str) -> None:
+        state[name] = GREY
+        stack.append(name)
+        for wire in specs[name].inputs.values():
+            if wire.source not in specs:
+                continue
+            if state[wire.source] == GREY:
+                loop = stack[stack.index(wire.source):] + [wire.source]
+                problems.append(doc.diag(("operators", name, "inputs", wire.port),
+                                         f"cycle: {' <- '.join(loop)} (a pipeline must be acyclic)"))
+            elif state[wire.source] == WHITE:
+                visit(wire.source)
+        stack.pop()
+        state[name] = BLACK
+
+    for name in specs:
+        if state[name] == WHITE:
+            visit(name)
+
+
+def _endpoint_parts(endpoint: str) -> tuple[str, str, str]:
+    proto, _, address = endpoint.partition("/")
+    address = address.split("#", 1)[0]
+    host, _, port = address.rpartition(":")
+    return proto, host.strip("[]"), port
+
+
+def _is_wildcard(host: str) -> bool:
+    return host in ("0.0.0.0", "::", "")
+
+
+def _is_ip(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        return False
+
+
+def _reaches(connect: str, listen: str) -> bool:
+    """Whether a connect endpoint can be the same socket as a listen endpoint (names are not resolved)."""
+    cp, ch, cport = _endpoint_parts(connect)
+    lp, lh, lport = _endpoint_parts(listen)
+    if cp != lp or cport != lport:
+        return False
+    return ch == lh or _is_wildcard(lh) or not _is_ip(ch) or not _is_ip(lh)
+
+
+def _check_hosts(doc, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
+    hosts = spec.hosts
+    for op in spec.operators.values():
+        path = ("operators", op.name, "host")
+        if op.host is None:
+            if hosts:
+                problems.append(doc.diag(("operators", op.name), f"operator {op.name!r} has no host: (hosts: "
+                                         f"{', '.join(hosts)})", key=True))
+        elif op.host not in hosts:
+            declared = f" (hosts: {', '.join(hosts)})" if hosts else " (the file declares no hosts:)"
+            problems.append(doc.diag(path, f"operator {op.name!r} is placed on undeclared host "
+                                     f"{op.host!r}{did_you_mean(op.host, hosts)}{declared}"))
+    if len(hosts) < 2:
+        return
+    links = {h: set() for h in hosts}
+    for a in hosts.values():
+        raw = (doc.data.get("hosts") or {}).get(a.name) or {}
+        if not a.listen and not a.connect and not ({"listen", "connect"} & set(raw)):
+            problems.append(doc.diag(("hosts", a.name), f"host {a.name!r} has neither listen nor connect endpoints, "
+                                     "so no other host can reach it", key=True))
+        for i, ep in enumerate(a.connect):
+            targets = [b.name for b in hosts.values() if b is not a and any(_reaches(ep, lep) for lep in b.listen)]
+            if not targets:
+                problems.append(doc.diag(("hosts", a.name, "connect", i), f"host {a.name!r} connects to {ep}, "
+                                         "where no declared host listens"))
+            for b in targets:
+                links[a.name].add(b)
+                links[b].add(a.name)
+    seen, todo = set(), [next(iter(hosts))]
+    while todo:
+        h = todo.pop()
+        if h not in seen:
+            seen.add(h)
+            todo.extend(links[h] - seen)
+    for h in hosts:
+        if h not in seen and links[h]:
+            problems.append(doc.diag(("hosts", h), f"host {h!r} has no connect path to host {next(iter(hosts))!r} "
+                                     "(connect to an endpoint another host listens on)", key=True))
+
+
+def check(spec: PipelineSpec, problems: list[Diagnostic] | None = None) -> Pipeline:
+    """Resolve operators, params and wires; raise SpecError with every problem found."""
+    problems = list(problems or [])
+    doc = spec.doc
+    nodes: dict[str, Node] = {}
+    for op in spec.operators.values():
+        try:
+            cls = resolve(op.uses)
+        except UnknownOperator as exc:
+            hint = did_you_mean(op.uses, BUILTINS) if "." not in op.uses else ""
+            problems.append(doc.diag(("operators", op.name, "uses"), f"{exc}{hint}"))
+            continue
+        nodes[op.name] = Node(op, cls, _params(doc, op, cls, problems))
+    _check_ports(doc, nodes, spec.operators, problems)
+    _check_cycles(doc, spec.operators, problems)
+    _check_hosts(doc, spec, problems)
+    if problems:
+        raise SpecError(problems)
+    return Pipeline(spec, nodes)
+
+
+def load_and_check(path: str | Path, overrides: dict[str, Any] | None = None) -> Pipeline:
+    """Read, parse and check a pipeline file in one go (what `rover check` and `rover run` do)."""
+    spec, problems = parse(read_document(path), overrides)
+    return check(spec, problems)

@@ -1,0 +1,69 @@
+"""Opening Zenoh sessions with explicit endpoints only, and clear errors when that fails."""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+from dataclasses import dataclass, field
+
+import zenoh
+
+from rover.errors import TransportError
+
+RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 1.5}
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """Where a session listens and what it connects to. No endpoints: a private in-process session."""
+
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    connect_timeout_s: float = 10.0
+    label: str = "local"
+
+
+def config(spec: SessionSpec) -> zenoh.Config:
+    """Router mode when other hosts take part (no separate router binary), scouting off, nothing implicit."""
+    conf = zenoh.Config()
+    distributed = bool(spec.listen or spec.connect)
+    conf.insert_json5("mode", json.dumps("router" if distributed else "peer"))
+    conf.insert_json5("listen/endpoints", json.dumps(spec.listen))
+    conf.insert_json5("connect/endpoints", json.dumps(spec.connect))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    conf.insert_json5("connect/timeout_ms", str(int(spec.connect_timeout_s * 1000)))
+    conf.insert_json5("connect/exit_on_failure", "true")
+    conf.insert_json5("connect/retry", json.dumps(RETRY))
+    return conf
+
+
+def _busy_listen_endpoint(endpoints: list[str]) -> str | None:
+    for ep in endpoints:
+        match = re.match(r"^tcp/\[?([^\]]*)\]?:(\d+)$", ep)
+        if not match:
+            continue
+        family = socket.AF_INET6 if ":" in match.group(1) else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            try:
+                probe.bind((match.group(1), int(match.group(2))))
+            except OSError:
+                return ep
+    return None
+
+
+def open_session(spec: SessionSpec) -> zenoh.Session:
+    """Open a session; a busy listen port or an unreachable endpoint is a TransportError naming it."""
+    try:
+        return zenoh.open(config(spec))
+    except zenoh.ZError as exc:
+        text = str(exc)
+        busy = _busy_listen_endpoint(spec.listen)
+        if busy or "listener" in text.lower():
+            raise TransportError(f"host {spec.label}: cannot listen on {busy or ', '.join(spec.listen)}: "
+                                 "address in use or not available") from None
+        if "connect" in text.lower():
+            raise TransportError(f"host {spec.label}: cannot reach {', '.join(spec.connect)} within "
+                                 f"{spec.connect_timeout_s:g} s (is the other host running and listening?)") from None
+        raise TransportError(f"host {spec.label}: cannot open a Zenoh session: {text.split(' at /')[0]}") from None
