@@ -12,7 +12,9 @@ from functools import lru_cache
 from importlib import resources
 from typing import Any
 
+import numpy as np
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+from rosbags.interfaces import Nodetype
 
 from rover.errors import BadInput
 
@@ -57,6 +59,38 @@ def message_class(typename: str) -> type:
         return typestore.types[typename]
     except KeyError:
         raise BadInput(f"unknown message type {typename!r}") from None
+
+
+_NUMPY_DTYPES = {"bool": "bool", "int8": "int8", "uint8": "uint8", "byte": "uint8", "char": "uint8",
+                 "int16": "int16", "uint16": "uint16", "int32": "int32", "uint32": "uint32",
+                 "int64": "int64", "uint64": "uint64", "float32": "float32", "float64": "float64"}
+
+
+def _zero(kind: int, spec: Any) -> Any:
+    if kind == Nodetype.BASE:
+        name = spec[0]
+        return "" if name in ("string", "wstring") else (False if name == "bool" else 0 if "int" in name
+                                                          or name in ("byte", "char") else 0.0)
+    if kind == Nodetype.NAME:
+        return make(spec)
+    (item_kind, item_spec), length = spec
+    numeric = item_kind == Nodetype.BASE and item_spec[0] in _NUMPY_DTYPES
+    if kind == Nodetype.ARRAY:
+        if numeric:
+            return np.zeros(length, dtype=_NUMPY_DTYPES[item_spec[0]])
+        return [_zero(item_kind, item_spec) for _ in range(length)]
+    return np.zeros(0, dtype=_NUMPY_DTYPES[item_spec[0]]) if numeric else []
+
+
+def make(typename: str, **fields: Any) -> Any:
+    """A message of `typename` with the given fields and every other field zero, empty or default."""
+    if typename not in typestore.fielddefs:
+        raise BadInput(f"unknown message type {typename!r}")
+    _consts, defs = typestore.fielddefs[typename]
+    values = {name: fields.pop(name) if name in fields else _zero(kind, spec) for name, (kind, spec) in defs}
+    if fields:
+        raise TypeError(f"{typename} has no field(s) {', '.join(fields)}")
+    return typestore.types[typename](**values)
 
 
 def serialize(msg: Any, typename: str | None = None) -> bytes:

@@ -80,8 +80,9 @@ class Operator:
         """All inputs reached end of stream: flush what is pending."""
         return ()
 
-    def close(self) -> None:
-        """Release resources; called once at the end of the run, also after an interrupt."""
+    def close(self, complete: bool = True) -> None:
+        """Release resources; called once at the end of the run. `complete` is False when the run
+        failed: outputs are then discarded rather than left half-written. An interrupt is complete."""
 
     @classmethod
     def input_spec(cls, port: str) -> In | None:

@@ -20,7 +20,7 @@ from typing import Any
 
 import zenoh
 
-from rover.errors import OperatorFailed, PeerLost
+from rover.errors import BadInput, OperatorFailed, PeerLost
 from rover.messages import ANY, Raw, deserialize, has_header, serialize, stamp_ns
 from rover.operator import Emit, Operator, Source, Watermark
 from rover.scheduler import INF, EventTimeMerger
@@ -74,15 +74,16 @@ class Output:
         self.publisher.put(payload, attachment=codec.attachment(codec.Kind.DATA, stamp, self.mark_ns))
         self.last_ns = max(self.last_ns, stamp)
 
-    def watermark(self, mark: int) -> None:
-        """Promise `mark`; tell consumers when this port has been silent for a while."""
-        if mark <= self.mark_ns:
-            return
-        self.mark_ns = mark
-        if mark - self.last_ns >= WATERMARK_INTERVAL_NS:
+    def promise(self, mark: int) -> None:
+        """Nothing sent from now on is stamped before `mark`; rides on the next sample."""
+        self.mark_ns = max(self.mark_ns, mark)
+
+    def heartbeat(self) -> None:
+        """Send the promise on its own when this port has been silent for a while of event time."""
+        if self.mark_ns - self.last_ns >= WATERMARK_INTERVAL_NS:
             self.publisher.put(b"", encoding=codec.control_encoding(),
-                               attachment=codec.attachment(codec.Kind.WATERMARK, mark, mark))
-            self.last_ns = mark
+                               attachment=codec.attachment(codec.Kind.WATERMARK, self.mark_ns, self.mark_ns))
+            self.last_ns = self.mark_ns
 
     def end(self) -> None:
         last = int(self.last_ns) if self.last_ns != -INF else 0
@@ -93,11 +94,11 @@ class Output:
 class Task:
     """An operator (or source) running in its own thread."""
 
-    def __init__(self, node: Node, pipeline: str, session: zenoh.Session, stop: threading.Event,
+    def __init__(self, node: Node, op: Operator, pipeline: str, session: zenoh.Session, stop: threading.Event,
                  abort: threading.Event):
         self.node = node
         self.name = node.name
-        self.op: Operator = node.build()
+        self.op = op
         self.stats = Stats()
         self.stop = stop
         self.abort = abort
@@ -145,35 +146,37 @@ class Task:
         if mark == INF or mark == -INF:
             return
         for out in self.outputs.values():
-            out.watermark(int(mark))
+            out.promise(int(mark))
+            out.heartbeat()
 
 
 class SourceTask(Task):
+    """Drives a source. Its items come in stamp order, so each stamp is also a promise on every port."""
+
     def run(self) -> None:
         source: Source = self.op  # type: ignore[assignment]
-        clock = -INF
+        clock = 0
         for item in source.run(self.stop):
             if self.abort.is_set():
                 break
             if isinstance(item, Watermark):
                 clock = max(clock, item.stamp_ns)
             else:
-                self.publish((item,), int(clock) if clock != -INF else 0)
-                port, msg, stamp = item
-                clock = max(clock, stamp if stamp is not None else self.outputs[port].last_ns)
+                stamp = item.stamp_ns if item.stamp_ns is not None else stamp_ns(item.msg)
+                clock = max(clock, stamp)
+                for out in self.outputs.values():
+                    out.promise(clock)
+                self.publish((item._replace(stamp_ns=stamp),), clock)
             self.advance(clock)
             if self.stop.is_set():
                 break
-        self._finish()
-
-    def _finish(self) -> None:
-        self.publish(self.op.on_end(), 0)
+        self.publish(self.op.on_end(), clock)
 
 
 class OperatorTask(Task):
-    def __init__(self, node: Node, pipeline: str, session: zenoh.Session, stop: threading.Event,
+    def __init__(self, node: Node, op: Operator, pipeline: str, session: zenoh.Session, stop: threading.Event,
                  abort: threading.Event):
-        super().__init__(node, pipeline, session, stop, abort)
+        super().__init__(node, op, pipeline, session, stop, abort)
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.merger = EventTimeMerger(list(node.spec.inputs))
         self.ports = {port: node.cls.input_spec(port) for port in node.spec.inputs}
@@ -266,13 +269,25 @@ class Runner:
 
     def run(self) -> int:
         """Run to the end; return the exit status (0, or 128 + signal after an interrupt)."""
-        handlers = self._install_signals()
+        ops: dict[str, Operator] = {}
+        complete = False
         try:
-            with open_session(self.session_spec()) as session:
-                self._run(session)
+            for node in self.nodes:
+                ops[node.name] = node.build()
+            handlers = self._install_signals()
+            try:
+                with open_session(self.session_spec()) as session:
+                    self._run(session, ops)
+            finally:
+                for sig, old in handlers.items():
+                    signal.signal(sig, old)
+            complete = True
         finally:
-            for sig, old in handlers.items():
-                signal.signal(sig, old)
+            for name, op in ops.items():
+                try:
+                    op.close(complete)
+                except Exception as exc:  # noqa: BLE001 - reported; the other operators still close
+                    log.error("operator %r failed to close: %s", name, exc)
         return 128 + self.interrupted if self.interrupted else 0
 
     def _install_signals(self) -> dict:
@@ -283,49 +298,52 @@ class Runner:
             old[sig] = signal.signal(sig, lambda signum, _frame: self.request_stop(signum))
         return old
 
-    def _run(self, session: zenoh.Session) -> None:
+    def _run(self, session: zenoh.Session, ops: dict[str, Operator]) -> None:
         name = self.pipeline.name
+        args = (name, session, self.stop, self.abort)
         try:
-            self.tasks = [OperatorTask(n, name, session, self.stop, self.abort) for n in self.nodes
-                          if not issubclass(n.cls, Source)]
-            self.tasks += [SourceTask(n, name, session, self.stop, self.abort) for n in self.nodes
-                           if issubclass(n.cls, Source)]
-            watcher = None
+            self.tasks = [OperatorTask(n, ops[n.name], *args) for n in self.nodes if not issubclass(n.cls, Source)]
+            self.tasks += [SourceTask(n, ops[n.name], *args) for n in self.nodes if issubclass(n.cls, Source)]
             if self.distributed:
-                watcher = session.liveliness().declare_subscriber(keys.host_tokens(name), self._on_host_token,
-                                                                  history=True)
-                ready = session.liveliness().declare_token(keys.host_token(name, self.host, "ready"))
-                self._wait_hosts("ready")
-            for task in self.tasks:
-                task.thread.start()
-            self._wait_tasks()
-            if self.distributed and not self.abort.is_set():
-                done = session.liveliness().declare_token(keys.host_token(name, self.host, "done"))
-                self._wait_hosts("done")
-                done.undeclare()
-            if watcher is not None:
-                ready.undeclare()
-                watcher.undeclare()
+                self._run_with_hosts(session)
+            else:
+                self._start_and_wait()
         finally:
             self.abort.set()
             for task in self.tasks:
-                task.thread.join(timeout=1.0)
+                if task.thread.ident is not None:
+                    task.thread.join(timeout=1.0)
             for task in self.tasks:
-                try:
-                    task.op.close()
-                except Exception as exc:  # noqa: BLE001 - reported, the other operators still close
-                    log.error("operator %r failed to close: %s", task.name, exc)
-            for task in self.tasks:
-                log.info("%s", task.stats.line(task.name))
-                if task.stats.dropped:
-                    log.warning("%s", task.stats.line(task.name))
+                log.log(logging.WARNING if task.stats.dropped else logging.INFO, "%s", task.stats.line(task.name))
         failed = next((t for t in self.tasks if t.error is not None), None)
         if failed is not None:
             exc = failed.error
-            if isinstance(exc, OperatorFailed):
+            if isinstance(exc, (OperatorFailed, BadInput)):
                 raise exc
             raise OperatorFailed(f"operator {failed.name!r} ({failed.node.spec.uses}) failed: "
                                  f"{type(exc).__name__}: {exc}") from exc
+
+    def _run_with_hosts(self, session: zenoh.Session) -> None:
+        """Start once every host has subscribed; leave once every host is done."""
+        name = self.pipeline.name
+        liveliness = session.liveliness()
+        watcher = liveliness.declare_subscriber(keys.host_tokens(name), self._on_host_token, history=True)
+        ready = liveliness.declare_token(keys.host_token(name, self.host, "ready"))
+        try:
+            self._wait_hosts("ready")
+            self._start_and_wait()
+            if not self.abort.is_set():
+                done = liveliness.declare_token(keys.host_token(name, self.host, "done"))
+                self._wait_hosts("done")
+                done.undeclare()
+        finally:
+            ready.undeclare()
+            watcher.undeclare()
+
+    def _start_and_wait(self) -> None:
+        for task in self.tasks:
+            task.thread.start()
+        self._wait_tasks()
 
     def _wait_tasks(self) -> None:
         deadline = None
@@ -355,7 +373,7 @@ class Runner:
         last_log = time.monotonic()
         with self._host_lock:
             while not wanted <= self._host_states[state]:
-                if self.stop.is_set() and state == "ready":
+                if self.stop.is_set():
                     return
                 if self._host_states["lost"] and state == "done":
                     lost = ", ".join(sorted(self._host_states["lost"]))
@@ -370,7 +388,6 @@ class Runner:
 def run(pipeline: Pipeline, host: str | None = None) -> int:
     """Run a checked pipeline (all of it, or one host's share); return the exit status."""
     if host is not None and pipeline.spec.hosts and host not in pipeline.spec.hosts:
-        from rover.errors import BadInput
         raise BadInput(f"{pipeline.spec.file}: --host {host!r} is not declared under hosts: "
                        f"({', '.join(pipeline.spec.hosts)})")
     return Runner(pipeline, host).run()

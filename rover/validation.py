@@ -220,7 +220,7 @@ def _check_hosts(doc, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
             seen.add(h)
             todo.extend(links[h] - seen)
     for h in hosts:
-        if h not in seen and links[h]:
+        if h not in seen and (hosts[h].listen or hosts[h].connect):
             problems.append(doc.diag(("hosts", h), f"host {h!r} has no connect path to host {next(iter(hosts))!r} "
                                      "(connect to an endpoint another host listens on)", key=True))
 

@@ -1,0 +1,78 @@
+"""Shared test helpers: datasets written on the fly, free loopback ports, and the real CLI in a subprocess."""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rover.datasets.bagfile import BagWriter
+from rover.messages import header, make
+
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
+T0_NS = 1_700_000_000_000_000_000
+
+
+def reference_data() -> Path:
+    """The real captures in ../shared/data (or ROVER_TEST_DATA); tests that need them skip without them."""
+    path = Path(os.environ.get("ROVER_TEST_DATA", ROOT.parent / "shared" / "data"))
+    if not path.is_dir():
+        pytest.skip(f"reference data not found at {path}: it is the shared/data folder beside this repository "
+                    "(set ROVER_TEST_DATA to point at it)")
+    return path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def write_imu_dataset(path: Path, n_imu: int, *, imu_hz: float = 200.0, odom_every: int = 10, seed: int = 7) -> Path:
+    """A dataset with `n_imu` IMU samples and odometry every `odom_every` samples, from a seeded RNG."""
+    rng = np.random.default_rng(seed)
+    gyro_z = rng.normal(0.0, 0.3, n_imu)
+    with BagWriter(path) as bag:
+        for i in range(n_imu):
+            stamp = T0_NS + int(i * 1e9 / imu_hz)
+            imu = make("sensor_msgs/msg/Imu", header=header(stamp, "imu_link"),
+                       angular_velocity=make("geometry_msgs/msg/Vector3", z=float(gyro_z[i])),
+                       linear_acceleration=make("geometry_msgs/msg/Vector3", z=9.81))
+            bag.write("/imu/data", imu, stamp)
+            if odom_every and i % odom_every == 0:
+                odom = make("nav_msgs/msg/Odometry", header=header(stamp, "odom"))
+                odom.pose.pose.position.x = math.sin(i / 100.0)
+                bag.write("/odom", odom, stamp)
+    return path
+
+
+def run_rover(*args: str, cwd: Path | None = None, timeout: float = 120, check: bool = False,
+              ) -> subprocess.CompletedProcess:
+    """The real `rover` command in a subprocess, with the tests' operators importable."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.run([sys.executable, "-m", "rover.cli", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"rover {' '.join(args)} exited {proc.returncode}:\n{proc.stderr}")
+    return proc
+
+
+def popen_rover(*args: str, cwd: Path | None = None) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+    return subprocess.Popen([sys.executable, "-m", "rover.cli", *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def read_bag(path: Path) -> list[tuple[str, int, bytes]]:
+    """(topic, log time, payload) of every message of an MCAP file, in file order."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        return [(ch.topic, m.log_time, m.data) for _s, ch, m in make_reader(f).iter_messages(log_time_order=False)]

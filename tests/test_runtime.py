@@ -1,0 +1,194 @@
+"""The runtime on real Zenoh sessions: one process or one process per host, same bytes out."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from conftest import free_port, popen_rover, read_bag, run_rover, write_imu_dataset
+from rover.messages import cdr_stamp_ns, make, header, serialize
+from rover.transport import codec
+
+TOY = """\
+version: 1
+name: toy
+vars: {dataset: "", output: out, port: 7447}
+hosts:
+  a: {listen: ["tcp/127.0.0.1:${port}"]}
+  b: {connect: ["tcp/127.0.0.1:${port}"]}
+  c: {connect: ["tcp/127.0.0.1:${port}"]}
+operators:
+  replay:  {uses: dataset_replay, host: a, params: {path: "${dataset}"}}
+  heading: {uses: toyops.Heading, host: b, inputs: {imu: replay/imu, odom: replay/odom}, params: {gain: 1.5}}
+  record:  {uses: recorder, host: c, inputs: {pose: heading/pose, imu: replay/imu}, params: {out: "${output}"}}
+"""
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_imu_dataset(tmp_path_factory.mktemp("data") / "toy.mcap", 4000)
+
+
+def run_hosts(pipeline: Path, hosts: list[str], *args: str, timeout: float = 120) -> list[tuple[int, str]]:
+    procs = [popen_rover("run", str(pipeline), "--host", h, *args) for h in hosts]
+    results = []
+    for proc in procs:
+        _out, err = proc.communicate(timeout=timeout)
+        results.append((proc.returncode, err))
+    return results
+
+
+def test_three_hosts_give_the_same_bytes_as_one_process(tmp_path, dataset):
+    pipeline = tmp_path / "toy.yaml"
+    pipeline.write_text(TOY)
+    single = run_rover("run", str(pipeline), "--dataset", str(dataset), "--output", str(tmp_path / "one"))
+    assert single.returncode == 0, single.stderr
+    port = str(free_port())
+    results = run_hosts(pipeline, ["c", "b", "a"], "--dataset", str(dataset), "--output", str(tmp_path / "three"),
+                        "--set", f"port={port}")
+    assert all(rc == 0 for rc, _ in results), results
+    one = (tmp_path / "one" / "results.mcap").read_bytes()
+    three = (tmp_path / "three" / "results.mcap").read_bytes()
+    messages = read_bag(tmp_path / "one" / "results.mcap")
+    assert sum(t == "/pose" for t, _, _ in messages) == 400
+    assert sum(t == "/imu" for t, _, _ in messages) == 4000
+    assert one == three
+
+
+def test_100k_messages_between_two_processes_none_lost_in_order(tmp_path):
+    dataset = write_imu_dataset(tmp_path / "big.mcap", 100_000, odom_every=0)
+    pipeline = tmp_path / "two.yaml"
+    port = free_port()
+    pipeline.write_text(f"""\
+name: two
+hosts:
+  robot: {{listen: ["tcp/127.0.0.1:{port}"]}}
+  laptop: {{connect: ["tcp/127.0.0.1:{port}"]}}
+operators:
+  replay: {{uses: dataset_replay, host: robot, params: {{path: "{dataset}"}}}}
+  record: {{uses: recorder, host: laptop, inputs: {{imu: replay/imu}}, params: {{out: "{tmp_path / 'out'}"}}}}
+""")
+    results = run_hosts(pipeline, ["laptop", "robot"], timeout=300)
+    assert all(rc == 0 for rc, _ in results), results
+    sent = [data for _t, _s, data in read_bag(dataset)]
+    got = read_bag(tmp_path / "out" / "results.mcap")
+    assert len(got) == 100_000
+    assert [data for _t, _s, data in got] == sent
+    stamps = [cdr_stamp_ns(data) for _t, _s, data in got]
+    assert stamps == sorted(stamps)
+
+
+LIVE = """\
+name: live
+vars: {output: out, count: 0, port: 7447}
+hosts:
+  robot: {listen: ["tcp/127.0.0.1:${port}"]}
+operators:
+  tick:   {uses: toyops.Ticker, host: robot, params: {rate_hz: 50, count: "${count}"}}
+  pass:   {uses: toyops.Passthrough, host: robot, inputs: {imu: tick/imu}}
+  record: {uses: recorder, host: robot, inputs: {imu: pass/imu}, params: {out: "${output}"}}
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_live_run_stops_cleanly_on_a_signal(tmp_path, sig):
+    pipeline = tmp_path / "live.yaml"
+    pipeline.write_text(LIVE)
+    proc = popen_rover("run", str(pipeline), "--output", str(tmp_path / "out"))
+    time.sleep(2.0)
+    assert proc.poll() is None, proc.communicate()
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    _out, err = proc.communicate(timeout=10)
+    took = time.monotonic() - sent
+    assert proc.returncode in (0, 128 + sig), err
+    assert took < 2.0, f"took {took:.2f} s to stop"
+    assert "Traceback" not in err
+    assert len(read_bag(tmp_path / "out" / "results.mcap")) > 20
+
+
+def test_a_run_ends_by_itself_at_end_of_stream(tmp_path):
+    pipeline = tmp_path / "live.yaml"
+    pipeline.write_text(LIVE)
+    proc = run_rover("run", str(pipeline), "--output", str(tmp_path / "out"), "--set", "count=25", timeout=30)
+    assert proc.returncode == 0, proc.stderr
+    assert len(read_bag(tmp_path / "out" / "results.mcap")) == 25
+
+
+def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_path):
+    pipeline = tmp_path / "live.yaml"
+    pipeline.write_text(LIVE)
+    port = free_port()
+    proc = popen_rover("-v", "run", str(pipeline), "--host", "robot", "--output", str(tmp_path / "out"),
+                       "--set", "count=150", "--set", f"port={port}")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    time.sleep(1.0)
+    with zenoh.open(conf) as foreign:
+        key = "rover/live/tick/imu"
+        good = serialize(make("sensor_msgs/msg/Imu", header=header(0)))
+        for _ in range(5):
+            foreign.put(key, b"\x00garbage\xff" * 7)
+            foreign.put(key, b"\x00\x01\x00\x00" + b"\xff" * 3, encoding=codec.encoding("sensor_msgs/msg/Imu"),
+                        attachment=codec.attachment(codec.Kind.DATA, 0, 0))
+            foreign.put(key, good, encoding=codec.encoding("std_msgs/msg/String"),
+                        attachment=codec.attachment(codec.Kind.DATA, 0, 0))
+            time.sleep(0.05)
+        time.sleep(0.5)
+    _out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert len(read_bag(tmp_path / "out" / "results.mcap")) == 150
+    assert "imu:missing or malformed Rover attachment=5" in err
+    assert "imu:bytes that do not decode as sensor_msgs/msg/Imu=5" in err
+    assert "imu:type std_msgs/msg/String where sensor_msgs/msg/Imu was expected=5" in err
+
+
+def test_a_failing_operator_is_one_line_and_status_1(tmp_path, dataset):
+    pipeline = tmp_path / "boom.yaml"
+    pipeline.write_text(f"""\
+name: boom
+operators:
+  replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}
+  boom:   {{uses: toyops.Explode, inputs: {{imu: replay/imu}}}}
+  record: {{uses: recorder, inputs: {{imu: boom/imu}}, params: {{out: "{tmp_path / 'out'}"}}}}
+""")
+    proc = run_rover("run", str(pipeline), timeout=60)
+    assert proc.returncode == 1
+    assert "operator 'boom' (toyops.Explode) failed: ZeroDivisionError: boom" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir()), "a failed run left output"
+
+
+def test_bad_inputs_are_one_line_and_status_2(tmp_path, dataset):
+    pipeline = tmp_path / "toy.yaml"
+    pipeline.write_text(TOY)
+    missing = run_rover("run", str(pipeline), "--dataset", str(tmp_path / "nope.mcap"))
+    assert missing.returncode == 2 and "nope.mcap: no such dataset file" in missing.stderr
+    nothing = run_rover("run", "--output", str(tmp_path / "o"))
+    assert nothing.returncode == 2 and "no dataset given" in nothing.stderr
+    port = free_port()
+    unreachable = run_rover("run", str(pipeline), "--host", "b", "--dataset", str(dataset), "--set", f"port={port}",
+                            timeout=60)
+    assert unreachable.returncode == 2
+    assert f"cannot reach tcp/127.0.0.1:{port}" in unreachable.stderr
+    import socket
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = busy.getsockname()[1]
+        in_use = run_rover("run", str(pipeline), "--host", "a", "--dataset", str(dataset), "--set", f"port={taken}")
+    assert in_use.returncode == 2 and f"cannot listen on tcp/127.0.0.1:{taken}" in in_use.stderr
+    for proc in (missing, nothing, unreachable, in_use):
+        assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_the_default_pipeline_runs_from_any_directory(tmp_path, dataset):
+    proc = run_rover("run", "--dataset", str(dataset), "--output", "res", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert len(read_bag(tmp_path / "res" / "replay.mcap")) == 4400

@@ -1,0 +1,189 @@
+"""`rover check`: every problem at once, each at its FILE:LINE:COL, with did-you-mean hints."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, run_rover
+from rover.errors import SpecError
+from rover.validation import load_and_check
+
+GOOD = """\
+version: 1
+name: toy
+vars: {dataset: data.mcap, output: out}
+operators:
+  replay: {uses: dataset_replay, params: {path: "${dataset}"}}
+  heading: {uses: toyops.Heading, inputs: {imu: replay/imu, odom: replay/odom}, params: {gain: 2}}
+  record: {uses: recorder, inputs: {pose: heading/pose}, params: {out: "${output}"}}
+"""
+
+
+def problems(tmp_path: Path, text: str, **overrides) -> list[tuple[int, int, str]]:
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(textwrap.dedent(text))
+    with pytest.raises(SpecError) as info:
+        load_and_check(path, overrides)
+    assert all(d.file == str(path) for d in info.value.diagnostics)
+    return [(d.line, d.col, d.message) for d in info.value.diagnostics]
+
+
+def at(text: str, needle: str, nth: int = 0) -> tuple[int, int]:
+    """1-based line and column of the nth occurrence of `needle` in `text`."""
+    index = -1
+    for _ in range(nth + 1):
+        index = text.index(needle, index + 1)
+    line = text.count("\n", 0, index) + 1
+    return line, index - (text.rfind("\n", 0, index) + 1) + 1
+
+
+def has(found, where, *words):
+    line, col = where
+    assert any(l == line and c == col and all(w in m for w in words) for l, c, m in found), found
+
+
+def test_good_file_passes(tmp_path):
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(GOOD)
+    pipeline = load_and_check(path)
+    assert list(pipeline.nodes) == ["replay", "heading", "record"]
+    assert pipeline.nodes["heading"].params.gain == 2.0
+    assert pipeline.nodes["replay"].params.path == "data.mcap"
+
+
+def test_yaml_syntax_error(tmp_path):
+    found = problems(tmp_path, "version: 1\noperators:\n  a: {uses: recorder\n  b: [\n")
+    assert len(found) == 1
+    line, col, msg = found[0]
+    assert "YAML syntax error" in msg and line == 4
+
+
+def test_duplicate_key(tmp_path):
+    text = GOOD + "  record: {uses: recorder}\n"
+    has(problems(tmp_path, text), at(text, "record:", 1), "duplicate key 'record'")
+
+
+def test_unknown_keys_everywhere(tmp_path):
+    text = GOOD.replace("vars:", "varz:").replace("inputs: {pose", "input: {pose")
+    text = text.replace("name: toy", "name: toy\nhosts: {nuc: {listn: [tcp/127.0.0.1:7447]}}")
+    found = problems(tmp_path, text)
+    has(found, at(text, "varz"), "unknown key 'varz'", "did you mean 'vars'")
+    has(found, at(text, "input:"), "unknown key 'input'", "did you mean 'inputs'")
+    has(found, at(text, "listn"), "unknown key 'listn'", "did you mean 'listen'")
+
+
+def test_unknown_operator(tmp_path):
+    text = GOOD.replace("uses: dataset_replay", "uses: dataset_replai").replace("toyops.Heading", "toyops.Headin")
+    found = problems(tmp_path, text)
+    has(found, at(text, "dataset_replai"), "unknown operator 'dataset_replai'", "did you mean 'dataset_replay'")
+    has(found, at(text, "toyops.Headin"), "'toyops.Headin' is not an Operator class")
+
+
+def test_unimportable_user_operator(tmp_path):
+    text = GOOD.replace("toyops.Heading", "nolab.filters.Median")
+    has(problems(tmp_path, text), at(text, "nolab"), "cannot import 'nolab.filters'")
+
+
+def test_unknown_and_ill_typed_params(tmp_path):
+    text = GOOD.replace("{gain: 2}", "{gian: 2}").replace('{out: "${output}"}', "{out: [1]}")
+    found = problems(tmp_path, text)
+    has(found, at(text, "gian"), "has no param 'gian'", "did you mean 'gain'", "(params: gain)")
+    has(found, at(text, "[1]"), "param 'out' of operator 'record'", "expected str")
+
+
+def test_ill_typed_param_from_set(tmp_path):
+    text = GOOD.replace("{gain: 2}", '{gain: "${g}"}').replace("output: out}", "output: out, g: 1}")
+    has(problems(tmp_path, text, g="fast"), at(text, '"${g}"'), "param 'gain'", "expected float, got 'fast'")
+
+
+def test_unknown_input_and_output_ports(tmp_path):
+    text = GOOD.replace("{imu: replay/imu", "{imuu: replay/imu").replace("odom: replay/odom", "odom: replay/odometry")
+    found = problems(tmp_path, text)
+    has(found, at(text, "imuu"), "has no input 'imuu'", "did you mean 'imu'", "(inputs: imu, odom)")
+    has(found, at(text, "replay/odometry"), "'replay' (dataset_replay) has no output 'odometry'", "did you mean 'odom'")
+
+
+def test_wire_to_unknown_operator(tmp_path):
+    text = GOOD.replace("pose: heading/pose", "pose: headin/pose")
+    has(problems(tmp_path, text), at(text, "headin/pose"), "unknown operator 'headin'", "did you mean 'heading'")
+
+
+def test_message_type_mismatch(tmp_path):
+    text = GOOD.replace("odom: replay/odom", "odom: replay/imu")
+    has(problems(tmp_path, text), at(text, "replay/imu", 1),
+        "type mismatch", "replay/imu sends sensor_msgs/msg/Imu", "takes nav_msgs/msg/Odometry")
+
+
+def test_unwired_required_input(tmp_path):
+    text = GOOD.replace("imu: replay/imu, ", "")
+    has(problems(tmp_path, text), at(text, "heading:"), "required input 'imu'", "not wired")
+
+
+def test_cycle(tmp_path):
+    text = GOOD + "  a: {uses: toyops.Passthrough, inputs: {imu: b/imu}}\n  b: {uses: toyops.Passthrough, inputs: {imu: a/imu}}\n"
+    has(problems(tmp_path, text), at(text, "a/imu"), "cycle: a <- b <- a")
+
+
+def test_source_with_inputs(tmp_path):
+    text = GOOD.replace('params: {path: "${dataset}"}}', 'inputs: {x: heading/pose}, params: {path: "${dataset}"}}')
+    has(problems(tmp_path, text), at(text, "inputs: {x"), "is a source and takes no inputs")
+
+
+def test_undeclared_host(tmp_path):
+    text = GOOD.replace("operators:", "hosts:\n  nuc: {listen: [tcp/127.0.0.1:7447]}\n  laptop: {connect: [tcp/127.0.0.1:7447]}\noperators:")
+    text = text.replace("uses: dataset_replay,", "uses: dataset_replay, host: nuc,")
+    text = text.replace("uses: toyops.Heading,", "uses: toyops.Heading, host: laptop,")
+    text = text.replace("uses: recorder,", "uses: recorder, host: laptp,")
+    has(problems(tmp_path, text), at(text, "laptp"), "undeclared host 'laptp'", "did you mean 'laptop'")
+
+
+def test_host_without_a_path(tmp_path):
+    text = GOOD.replace("operators:", "hosts:\n  nuc: {listen: [tcp/127.0.0.1:7447]}\n  base: {}\n"
+                        "  laptop: {connect: [tcp/127.0.0.1:7448]}\n  far: {listen: [tcp/127.0.0.1:7449]}\noperators:")
+    for op, host in (("replay", "nuc"), ("heading", "base"), ("record", "laptop")):
+        text = text.replace(f"  {op}: {{", f"  {op}: {{host: {host}, ")
+    found = problems(tmp_path, text)
+    has(found, at(text, "base:"), "host 'base' has neither listen nor connect")
+    has(found, at(text, "tcp/127.0.0.1:7448"), "connects to tcp/127.0.0.1:7448, where no declared host listens")
+    has(found, at(text, "far:"), "host 'far' has no connect path")
+
+
+def test_undefined_variable_and_bad_endpoint(tmp_path):
+    text = GOOD.replace('path: "${dataset}"', 'path: "${datset}"')
+    text = text.replace("operators:", "hosts:\n  nuc: {listen: [tcp/127.0.0.1:port]}\noperators:")
+    found = problems(tmp_path, text)
+    has(found, at(text, "tcp/127.0.0.1:port"), "bad endpoint 'tcp/127.0.0.1:port'")
+    has(found, at(text, '"${datset}"'), "undefined variable ${datset}", "did you mean 'dataset'")
+
+
+def test_every_problem_at_once(tmp_path):
+    text = GOOD.replace("vars:", "varz:").replace("{gain: 2}", "{gian: 2}").replace("uses: recorder", "uses: recordr")
+    assert len(problems(tmp_path, text)) >= 4
+
+
+def test_cli_check_prints_positions_and_exits_2(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    text = GOOD.replace("uses: recorder", "uses: recordr")
+    bad.write_text(text)
+    proc = run_rover("check", str(bad))
+    assert proc.returncode == 2
+    line, col = at(text, "recordr")
+    assert f"{bad}:{line}:{col}: unknown operator 'recordr'; did you mean 'recorder'?" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_cli_check_good_file_one_line(tmp_path):
+    good = tmp_path / "good.yaml"
+    good.write_text(GOOD)
+    proc = run_rover("check", str(good), str(ROOT / "pipeline.yaml"))
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == 2 and all(": ok: pipeline" in line for line in lines)
+
+
+def test_cli_missing_file(tmp_path):
+    proc = run_rover("check", str(tmp_path / "nope.yaml"))
+    assert proc.returncode == 2 and "nope.yaml: no such file" in proc.stderr

@@ -1,0 +1,93 @@
+"""User operators for the tests, found by dotted path (`uses: toyops.Heading`), as a user's own would be."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+from rover.messages import header, make
+from rover.operator import Emit, In, Operator, Out, Source, Watermark
+
+
+
+@dataclass(frozen=True)
+class HeadingParams:
+    gain: float = 1.0
+
+
+class Heading(Operator):
+    """Integrates the gyro's z rate into a heading; at each odometry message emits the pose so far.
+
+    Two inputs, so the result depends on the order the runtime delivers them in."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu"), "odom": In("nav_msgs/msg/Odometry", required=False)}
+    outputs = {"pose": Out("geometry_msgs/msg/PoseStamped")}
+    Params = HeadingParams
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        self.yaw = 0.0
+        self.last_ns: int | None = None
+
+    def on_input(self, port, msg, stamp_ns):
+        if port == "imu":
+            if self.last_ns is not None:
+                self.yaw += self.params.gain * msg.angular_velocity.z * (stamp_ns - self.last_ns) * 1e-9
+            self.last_ns = stamp_ns
+            return
+        pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp_ns, "world"), pose=msg.pose.pose)
+        pose.pose.orientation.z = math.sin(self.yaw / 2)
+        pose.pose.orientation.w = math.cos(self.yaw / 2)
+        yield Emit("pose", pose)
+
+
+class Passthrough(Operator):
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    outputs = {"imu": Out("sensor_msgs/msg/Imu")}
+
+    def on_input(self, port, msg, stamp_ns):
+        yield Emit("imu", msg)
+
+
+class Explode(Operator):
+    """Raises on its third message: a buggy user operator."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    outputs = {"imu": Out("sensor_msgs/msg/Imu")}
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        self.n = 0
+
+    def on_input(self, port, msg, stamp_ns):
+        self.n += 1
+        if self.n == 3:
+            raise ZeroDivisionError("boom")
+        yield Emit("imu", msg)
+
+
+@dataclass(frozen=True)
+class TickerParams:
+    rate_hz: float = 50.0
+    count: int = 0
+    """Messages to send before ending; 0 = until stopped."""
+
+
+class Ticker(Source):
+    """A live IMU-like source stamped with wall-clock time, like a driver on the robot."""
+
+    outputs = {"imu": Out("sensor_msgs/msg/Imu"), "silent": Out("sensor_msgs/msg/Imu")}
+    Params = TickerParams
+
+    def run(self, stop: threading.Event):
+        period = 1.0 / self.params.rate_hz
+        n = 0
+        while not stop.is_set() and (self.params.count == 0 or n < self.params.count):
+            now = time.time_ns()
+            gyro = make("geometry_msgs/msg/Vector3", z=0.1 * n)
+            yield Emit("imu", make("sensor_msgs/msg/Imu", header=header(now, "imu_link"), angular_velocity=gyro))
+            yield Watermark(now)
+            n += 1
+            stop.wait(period)
