@@ -21,7 +21,7 @@ from typing import Any
 import zenoh
 
 from rover.errors import BadInput, OperatorFailed, PeerLost
-from rover.messages import ANY, Raw, deserialize, has_header, serialize, stamp_ns
+from rover.messages import ANY, Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, Source, Watermark
 from rover.scheduler import INF, EventTimeMerger
 from rover.validation import Node, Pipeline
@@ -35,6 +35,7 @@ WATERMARK_INTERVAL_NS = 100_000_000
 DRAIN_S = 1.5
 """After an interrupt, how long operators may drain what is queued before the run is cut."""
 POLL_S = 0.05
+_KNOWN = typestore.fielddefs
 READY_LOG_S = 5.0
 
 
@@ -217,13 +218,18 @@ class OperatorTask(Task):
         if spec.type != ANY and typename != spec.type:
             self._drop(port, f"type {typename or 'unknown'} where {spec.type} was expected")
             return
-        try:
-            msg = deserialize(payload, typename)
-        except Exception:  # noqa: BLE001 - any decoding failure of foreign bytes is a drop, never a crash
+        if spec.raw:
+            msg = Raw(typename, payload) if _plausible_cdr(payload, typename, stamp) else None
+        else:
+            try:
+                msg = deserialize(payload, typename)
+            except Exception:  # noqa: BLE001 - any decoding failure of foreign bytes is a drop, never a crash
+                msg = None
+        if msg is None:
             self._drop(port, f"bytes that do not decode as {typename or spec.type}")
             return
         self.stats.received[port] += 1
-        self.merger.push(port, stamp, Raw(typename, payload) if spec.raw else msg)
+        self.merger.push(port, stamp, msg)
 
     def run(self) -> None:
         merger = self.merger
@@ -240,6 +246,16 @@ class OperatorTask(Task):
                 self.publish(op.on_input(port, msg, stamp), stamp)
             self.advance(merger.safe_time() - op.lateness_s * 1e9)
         self.publish(op.on_end(), int(max(o.last_ns for o in self.outputs.values())) if self.outputs else 0)
+
+
+def _plausible_cdr(payload: bytes, typename: str, stamp: int) -> bool:
+    """Cheap check for pass-through ports that never decode: a CDR encapsulation header and, for
+    types with a header, the header stamp the producer also put in the attachment."""
+    if len(payload) < 4 or payload[:2] not in (b"\x00\x00", b"\x00\x01") or typename not in _KNOWN:
+        return False
+    if has_header(typename):
+        return len(payload) >= 16 and cdr_stamp_ns(payload) == stamp
+    return True
 
 
 class Runner:

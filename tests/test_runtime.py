@@ -168,13 +168,13 @@ operators:
 def test_bad_inputs_are_one_line_and_status_2(tmp_path, dataset):
     pipeline = tmp_path / "toy.yaml"
     pipeline.write_text(TOY)
-    missing = run_rover("run", str(pipeline), "--dataset", str(tmp_path / "nope.mcap"))
+    missing = run_rover("run", str(pipeline), "--dataset", str(tmp_path / "nope.mcap"), cwd=tmp_path)
     assert missing.returncode == 2 and "nope.mcap: no such dataset file" in missing.stderr
-    nothing = run_rover("run", "--output", str(tmp_path / "o"))
+    nothing = run_rover("run", "--output", str(tmp_path / "o"), cwd=tmp_path)
     assert nothing.returncode == 2 and "no dataset given" in nothing.stderr
     port = free_port()
     unreachable = run_rover("run", str(pipeline), "--host", "b", "--dataset", str(dataset), "--set", f"port={port}",
-                            timeout=60)
+                            timeout=60, cwd=tmp_path)
     assert unreachable.returncode == 2
     assert f"cannot reach tcp/127.0.0.1:{port}" in unreachable.stderr
     import socket
@@ -182,10 +182,12 @@ def test_bad_inputs_are_one_line_and_status_2(tmp_path, dataset):
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         taken = busy.getsockname()[1]
-        in_use = run_rover("run", str(pipeline), "--host", "a", "--dataset", str(dataset), "--set", f"port={taken}")
+        in_use = run_rover("run", str(pipeline), "--host", "a", "--dataset", str(dataset), "--set", f"port={taken}",
+                           cwd=tmp_path)
     assert in_use.returncode == 2 and f"cannot listen on tcp/127.0.0.1:{taken}" in in_use.stderr
     for proc in (missing, nothing, unreachable, in_use):
         assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["toy.yaml"], "a failed start left files behind"
 
 
 def test_the_default_pipeline_runs_from_any_directory(tmp_path, dataset):

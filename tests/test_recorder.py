@@ -1,0 +1,36 @@
+"""`recorder`: a ROS 2 MCAP that appears only when complete, and is dropped when the run failed."""
+
+from __future__ import annotations
+
+from rosbags.highlevel import AnyReader
+
+from conftest import T0_NS, read_bag
+from rover.drivers.recorder import Recorder, RecorderParams
+from rover.messages import Raw, header, make, serialize
+
+
+def imu(i: int) -> Raw:
+    return Raw("sensor_msgs/msg/Imu", serialize(make("sensor_msgs/msg/Imu", header=header(T0_NS + i))))
+
+
+def test_writes_a_ros2_bag_other_tools_read(tmp_path):
+    rec = Recorder(RecorderParams(out=str(tmp_path), topics={"imu": "/imu/data"}))
+    for i in range(5):
+        rec.on_input("imu", imu(i), T0_NS + i)
+    rec.on_input("tags", Raw("std_msgs/msg/String", serialize(make("std_msgs/msg/String", data="x"))), T0_NS + 9)
+    assert not (tmp_path / "results.mcap").exists()
+    rec.close()
+    path = tmp_path / "results.mcap"
+    assert [(t, s) for t, s, _ in read_bag(path)] == [("/imu/data", T0_NS + i) for i in range(5)] + [("/tags", T0_NS + 9)]
+    with AnyReader([path]) as reader:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        assert topics == {"/imu/data": "sensor_msgs/msg/Imu", "/tags": "std_msgs/msg/String"}
+        msgs = [reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages()]
+        assert msgs[-1].data == "x"
+
+
+def test_a_failed_run_leaves_nothing(tmp_path):
+    rec = Recorder(RecorderParams(out=str(tmp_path)))
+    rec.on_input("imu", imu(0), T0_NS)
+    rec.close(complete=False)
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,71 @@
+"""`dataset_replay`: every message once, in order, as raw CDR; the rig description first; paced on request."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from conftest import T0_NS, read_bag, write_imu_dataset
+from rover.datasets.bagfile import BagWriter
+from rover.drivers.replay import DatasetReplay, ReplayParams
+from rover.errors import BadInput
+from rover.messages import Raw, header, make
+from rover.operator import Emit
+
+SETUP = "excitation: {channel: 165}\ntags: [{id: 1, channel: 149}]\n"
+
+
+def test_replays_everything_in_log_order_with_the_setup_first(tmp_path):
+    path = tmp_path / "d.mcap"
+    with BagWriter(path, metadata={"rover.setup": {"yaml": SETUP}}) as bag:
+        for i in range(50):
+            stamp = T0_NS + i * 10_000_000
+            bag.write("/imu/data", make("sensor_msgs/msg/Imu", header=header(stamp)), stamp)
+            if i % 10 == 0:
+                bag.write("/other", make("std_msgs/msg/String", data="ignored"), stamp)
+    items = list(DatasetReplay(ReplayParams(path=str(path))).run(threading.Event()))
+    assert isinstance(items[0], Emit) and items[0].port == "setup"
+    assert items[0].msg.setup_yaml == SETUP and items[0].stamp_ns == T0_NS
+    imu = [i for i in items if i.port == "imu"]
+    assert len(imu) == 50 and all(isinstance(i.msg, Raw) for i in imu)
+    assert [i.msg.payload for i in imu] == [d for t, _s, d in read_bag(path) if t == "/imu/data"]
+
+
+def test_speed_paces_against_the_wall_clock(tmp_path):
+    path = write_imu_dataset(tmp_path / "d.mcap", 200, imu_hz=200.0, odom_every=0)  # one second of data
+    start = time.monotonic()
+    n = sum(1 for _ in DatasetReplay(ReplayParams(path=str(path), speed=4.0)).run(threading.Event()))
+    took = time.monotonic() - start
+    assert n == 200
+    assert 0.2 <= took < 1.0
+
+
+def test_stop_ends_the_replay(tmp_path):
+    path = write_imu_dataset(tmp_path / "d.mcap", 100, odom_every=0)
+    stop = threading.Event()
+    items = []
+    for item in DatasetReplay(ReplayParams(path=str(path))).run(stop):
+        items.append(item)
+        if len(items) == 10:
+            stop.set()
+    assert len(items) == 10
+
+
+def test_bad_datasets_are_bad_input(tmp_path):
+    with pytest.raises(BadInput, match="no dataset given"):
+        DatasetReplay(ReplayParams(path=""))
+    with pytest.raises(BadInput, match="no such dataset file"):
+        DatasetReplay(ReplayParams(path=str(tmp_path / "none.mcap")))
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not an mcap file at all")
+    with pytest.raises(BadInput, match="not a readable MCAP dataset"):
+        DatasetReplay(ReplayParams(path=str(junk)))
+    wrong = tmp_path / "wrong.mcap"
+    with BagWriter(wrong) as bag:
+        bag.write("/imu/data", make("std_msgs/msg/String", data="x"), T0_NS)
+    with pytest.raises(BadInput, match=r"topic /imu/data is std_msgs/msg/String \(cdr\), expected sensor_msgs/msg/Imu"):
+        DatasetReplay(ReplayParams(path=str(wrong)))
+    with pytest.raises(BadInput, match="speed must be"):
+        DatasetReplay(ReplayParams(path=str(wrong), speed=0.0))
