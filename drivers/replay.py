@@ -57,9 +57,10 @@ class DatasetReplay(Source):
             if port not in self.outputs or port == "setup":
                 raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, imu, odom)")
         self._port_of = {topic: port for port, topic in p.topics.items()}
-        self._setup_yaml, self._channels = self._inspect()
+        self._setup_yaml, self._channels, self._total = self._inspect()
+        self._done = 0
 
-    def _inspect(self) -> tuple[str | None, dict[str, str]]:
+    def _inspect(self) -> tuple[str | None, dict[str, str], int]:
         """Read the summary: which wanted topics exist with the right types, and the rig description."""
         try:
             with self.path.open("rb") as f:
@@ -71,6 +72,8 @@ class DatasetReplay(Source):
         if summary is None:
             raise BadInput(f"{self.path}: MCAP file has no summary section (was it closed properly?)")
         found: dict[str, str] = {}
+        total = 0
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
         for channel in summary.channels.values():
             port = self._port_of.get(channel.topic)
             if port is None:
@@ -81,8 +84,12 @@ class DatasetReplay(Source):
                 got = f"{schema.name if schema else 'no schema'} ({channel.message_encoding})"
                 raise BadInput(f"{self.path}: topic {channel.topic} is {got}, expected {wanted} (cdr)")
             found[channel.topic] = port
+            total += counts.get(channel.id, 0)
         setup = metadata.get(SETUP_METADATA, {}).get("yaml")
-        return setup, found
+        return setup, found, total
+
+    def progress(self) -> tuple[int, int] | None:
+        return (self._done, self._total) if self._total else None
 
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         speed = self.params.speed
@@ -104,4 +111,5 @@ class DatasetReplay(Source):
                         if stop.wait(min(wait, 0.1)):
                             return
                 port = self._channels[channel.topic]
+                self._done += 1
                 yield Emit(port, Raw(self.outputs[port].type, message.data))

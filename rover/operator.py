@@ -111,3 +111,7 @@ class Source(Operator):
 
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         raise NotImplementedError
+
+    def progress(self) -> tuple[int, int] | None:
+        """(items done, items in all) for a progress bar, when the source knows its length."""
+        return None

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import queue
 import signal
+import sys
 import threading
 import time
 from collections import Counter
@@ -258,6 +259,33 @@ def _plausible_cdr(payload: bytes, typename: str, stamp: int) -> bool:
     return True
 
 
+class _ProgressBar:
+    """A progress bar on stderr for sources that know their length, only when stderr is a terminal."""
+
+    def __init__(self, sources: list[Source]):
+        self.sources = [s for s in sources if s.progress() is not None]
+        self.progress = None
+        if self.sources and sys.stderr.isatty():
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+            self.progress = Progress("[progress.description]{task.description}", BarColumn(),
+                                     MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
+            self.ids = [self.progress.add_task("replay", total=s.progress()[1]) for s in self.sources]
+
+    def update(self) -> None:
+        if self.progress is not None:
+            for task_id, source in zip(self.ids, self.sources):
+                self.progress.update(task_id, completed=source.progress()[0])
+
+    def __enter__(self) -> _ProgressBar:
+        if self.progress is not None:
+            self.progress.start()
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+
+
 class Runner:
     """Runs the operators of one host (or all of them) until end of stream or an interrupt."""
 
@@ -363,17 +391,19 @@ class Runner:
 
     def _wait_tasks(self) -> None:
         deadline = None
-        while not all(t.done.is_set() for t in self.tasks):
-            if self.stop.is_set() and deadline is None:
-                deadline = time.monotonic() + DRAIN_S
-            if deadline is not None and time.monotonic() > deadline:
-                self.abort.set()
-                break
-            if self._host_states["lost"]:
-                lost = ", ".join(sorted(self._host_states["lost"]))
-                self.abort.set()
-                raise PeerLost(f"host {lost} left before the end of the stream")
-            time.sleep(POLL_S)
+        with _ProgressBar([t.op for t in self.tasks if isinstance(t, SourceTask)]) as bar:
+            while not all(t.done.is_set() for t in self.tasks):
+                if self.stop.is_set() and deadline is None:
+                    deadline = time.monotonic() + DRAIN_S
+                if deadline is not None and time.monotonic() > deadline:
+                    self.abort.set()
+                    break
+                if self._host_states["lost"]:
+                    lost = ", ".join(sorted(self._host_states["lost"]))
+                    self.abort.set()
+                    raise PeerLost(f"host {lost} left before the end of the stream")
+                bar.update()
+                time.sleep(POLL_S)
 
     def _on_host_token(self, sample: zenoh.Sample) -> None:
         host, state = keys.parse_host_token(str(sample.key_expr))

@@ -194,3 +194,35 @@ def test_the_default_pipeline_runs_from_any_directory(tmp_path, dataset):
     proc = run_rover("run", "--dataset", str(dataset), "--output", "res", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert len(read_bag(tmp_path / "res" / "replay.mcap")) == 4400
+
+
+def test_watermarks_keep_a_live_run_flowing_past_a_silent_input(tmp_path):
+    port = free_port()
+    pipeline = tmp_path / "silent.yaml"
+    pipeline.write_text(f"""\
+name: silent
+hosts:
+  robot: {{listen: ["tcp/127.0.0.1:{port}"]}}
+operators:
+  tick:  {{uses: toyops.Ticker, host: robot, params: {{rate_hz: 50}}}}
+  merge: {{uses: toyops.Merge, host: robot, inputs: {{a: tick/imu, b: tick/silent}}}}
+""")
+    proc = popen_rover("run", str(pipeline), "--host", "robot")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    seen = []
+    try:
+        time.sleep(1.0)
+        with zenoh.open(conf) as watcher:
+            sub = watcher.declare_subscriber("rover/silent/merge/out",
+                                             lambda s: seen.append(codec.read_attachment(s.attachment.to_bytes())))
+            time.sleep(2.0)
+            live = [k for k, _s, _w in seen if k == codec.Kind.DATA]
+            sub.undeclare()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130, err
+    assert len(live) >= 50, f"only {len(live)} messages flowed while input 'b' was silent"

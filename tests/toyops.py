@@ -91,3 +91,13 @@ class Ticker(Source):
             yield Watermark(now)
             n += 1
             stop.wait(period)
+
+
+class Merge(Operator):
+    """Forwards both inputs in event-time order: a silent input must not hold the other back."""
+
+    inputs = {"a": In("sensor_msgs/msg/Imu"), "b": In("sensor_msgs/msg/Imu")}
+    outputs = {"out": Out("sensor_msgs/msg/Imu")}
+
+    def on_input(self, port, msg, stamp_ns):
+        yield Emit("out", msg)
