@@ -37,13 +37,34 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     return values
 
 
-def cmd_check(args: argparse.Namespace) -> int:
-    from rover.validation import load_and_check
+def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
+    """Summary line and warnings of one pipeline or setup file; raises on problems."""
+    from rover.channel_plan import conflicts
+    from rover.rig import parse_rig
+    from rover.spec import read_document
+    from rover.validation import check, parse
 
+    doc = read_document(file)
+    if isinstance(doc.data, dict) and "operators" not in doc.data and ({"receiver", "tags", "excitation"} & set(doc.data)):
+        rig = parse_rig(doc)
+        warnings = [f"{d} (warning)" for d in rig.warnings]
+        warnings += [f"{file}: warning: channel plan: {c.message}"
+                     for c in conflicts(rig.excitation_channel, {t.id: t.channel for t in rig.tags})]
+        tags = ", ".join(f"{t.id}@{t.channel}" for t in rig.tags)
+        return (f"{file}: ok: rig with {len(rig.antenna_positions_m)} antennas, excitation channel "
+                f"{rig.excitation_channel}, {len(rig.tags)} tags ({tags})"), warnings
+    spec, problems = parse(doc, overrides)
+    return check(spec, problems).summary(), []
+
+
+def cmd_check(args: argparse.Namespace) -> int:
     problems: list[str] = []
     for file in args.files:
         try:
-            print(load_and_check(file, _overrides(args)).summary())
+            summary, warnings = _check_one(file, _overrides(args))
+            print(summary)
+            for line in warnings:
+                print(line, file=sys.stderr)
         except SpecError as exc:
             problems += [str(d) for d in exc.diagnostics]
         except BadInput as exc:
@@ -93,7 +114,7 @@ def parser() -> argparse.ArgumentParser:
     _add_set(p)
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("check", help="validate pipeline files; report every problem as FILE:LINE:COL")
+    p = sub.add_parser("check", help="validate pipeline and setup files; report every problem as FILE:LINE:COL")
     p.add_argument("files", nargs="+", metavar="FILE")
     _add_set(p)
     p.set_defaults(func=cmd_check)

@@ -1,0 +1,107 @@
+"""`channel_sweep`: plan the receiver's channel hops from the rig and label each CSI frame with its tag.
+
+Each tag backscatters into its own channel, so the channel a frame was received on names the
+tag. Conflicts between tags (overlapping channels, mirror sidebands, harmonics) are logged as
+warnings when labelling recorded data and are errors when planning a live sweep.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from rover.channel_plan import conflicts, max_tags, propose
+from rover.errors import BadInput, SpecError
+from rover.messages import header, make
+from rover.operator import Emit, In, Operator, Out
+from rover.rig import Rig, rig_from_text
+from rover.wifi import INTEL5300_CHANNELS_5GHZ
+
+log = logging.getLogger("rover.channel_sweep")
+
+
+@dataclass(frozen=True)
+class SweepParams:
+    dwell_s: float = 0.05
+    channels: list[int] = field(default_factory=lambda: list(INTEL5300_CHANNELS_5GHZ))
+    mode: Literal["label", "live"] = "label"
+    max_shift_hz: float | None = None
+
+
+class ChannelSweep(Operator):
+    """Labels CSI frames with the tag owning their channel; sends the sweep schedule once the rig is known."""
+
+    inputs = {"frames": In("rover_msgs/msg/CsiFrame"), "setup": In("rover_msgs/msg/RigSetup")}
+    outputs = {"labelled": Out("rover_msgs/msg/LabelledCsiFrame"),
+               "schedule": Out("rover_msgs/msg/SweepSchedule")}
+    Params = SweepParams
+
+    def __init__(self, params: SweepParams | None = None):
+        super().__init__(params)
+        if not self.params.dwell_s > 0:
+            raise BadInput(f"channel_sweep: dwell_s must be positive, got {self.params.dwell_s}")
+        self.rig: Rig | None = None
+        self.owner: dict[int, int] = {}
+        self.waiting: list[tuple[Any, int]] = []
+        self.unowned: Counter = Counter()
+
+    def on_input(self, port: str, msg: Any, stamp_ns: int):
+        if port == "setup":
+            yield from self._configure(msg.setup_yaml, stamp_ns)
+            for frame, stamp in self.waiting:
+                yield from self._label(frame, stamp)
+            self.waiting.clear()
+        elif self.rig is None:
+            self.waiting.append((msg, stamp_ns))
+        else:
+            yield from self._label(msg, stamp_ns)
+
+    def _configure(self, text: str, stamp_ns: int):
+        try:
+            rig = rig_from_text(text, "RigSetup")
+        except SpecError as exc:
+            raise BadInput(f"rig description on the setup input: {exc.diagnostics[0]}") from None
+        self.rig = rig
+        p = self.params
+        wanted = {t.id: t.channel for t in rig.tags}
+        found = conflicts(rig.excitation_channel, wanted, p.channels)
+        best = max_tags(rig.excitation_channel, p.channels, p.max_shift_hz)
+        if found:
+            plan = propose(rig.excitation_channel, wanted, p.channels, p.max_shift_hz)
+            advice = (f"a conflict-free assignment: {', '.join(f'tag {t} -> {c}' for t, c in sorted(plan.channels.items()))}"
+                      if plan else "no conflict-free assignment exists for these tags on this excitation channel")
+            lines = [c.message for c in found]
+            if p.mode == "live":
+                raise BadInput(f"channel plan has {len(found)} conflict(s): {'; '.join(lines)}; {advice}")
+            for line in lines:
+                log.warning("channel plan: %s", line)
+            log.warning("channel plan: %s", advice)
+        log.info("excitation channel %d allows at most %d tags at once", rig.excitation_channel, len(best))
+        self.owner = dict(sorted((t.channel, t.id) for t in rig.tags))
+        dwell = rig.dwell_s or p.dwell_s
+        yield Emit("schedule", make("rover_msgs/msg/SweepSchedule", header=header(stamp_ns, "base_link"),
+                                    excitation_channel=rig.excitation_channel,
+                                    channels=np.array(list(self.owner), dtype=np.uint16),
+                                    tag_ids=np.array(list(self.owner.values()), dtype=np.uint32),
+                                    dwell_s=dwell, max_tags=len(best)))
+
+    def _label(self, frame: Any, stamp_ns: int):
+        tag = self.owner.get(frame.channel)
+        if tag is None:
+            self.unowned[frame.channel] += 1
+            return
+        yield Emit("labelled", make("rover_msgs/msg/LabelledCsiFrame", header=frame.header, tag_id=tag,
+                                    channel=frame.channel, bfee=frame.bfee), stamp_ns)
+
+    def on_end(self):
+        if self.waiting:
+            log.warning("channel_sweep: %d CSI frames dropped: no rig description arrived", len(self.waiting))
+        if self.unowned:
+            counts = ", ".join(f"channel {c}: {n}" for c, n in sorted(self.unowned.items()))
+            log.warning("channel_sweep: %d CSI frames dropped on channels no tag owns (%s)",
+                        sum(self.unowned.values()), counts)
+        return ()

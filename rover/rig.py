@@ -1,0 +1,231 @@
+"""The rig description (`setup.yaml`, MCAP metadata `rover.setup`, `RigSetup` messages).
+
+Antenna positions in the robot frame (x forward, y left), per-chain phase calibration, the
+excitation channel, the tags and their channels, topic names and the IMU mounting.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rover.errors import Diagnostic, SpecError
+from rover.spec import did_you_mean, read_document
+from rover.wifi import INTEL5300_CHANNELS_5GHZ, channel_freq_hz, freq_channel
+from rover.yamlpos import Located, load
+
+TOP_KEYS = ("receiver", "excitation", "tags", "topics", "imu", "sweep")
+RECEIVER_KEYS = ("antenna_positions_m", "phase_offsets_rad", "interface")
+TAG_KEYS = ("id", "channel", "shift_hz", "name")
+IMU_KEYS = ("frame_id", "rate_hz", "rotation_rpy_deg", "position_m")
+DEFAULT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
+
+
+@dataclass(frozen=True)
+class TagSpec:
+    """A tag: its id and the channel it backscatters into (given, or derived from its shift)."""
+
+    id: int
+    channel: int
+    shift_hz: float
+
+
+@dataclass(frozen=True)
+class ImuMount:
+    frame_id: str = "imu_link"
+    rate_hz: float | None = None
+    rotation_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A checked rig description. `text` is the YAML it came from, passed along verbatim."""
+
+    antenna_positions_m: np.ndarray
+    excitation_channel: int
+    tags: tuple[TagSpec, ...]
+    phase_offsets_rad: dict[int | None, np.ndarray] = field(default_factory=dict)
+    interface: str = "wlan0"
+    topics: dict[str, str | None] = field(default_factory=lambda: dict(DEFAULT_TOPICS))
+    imu: ImuMount = ImuMount()
+    dwell_s: float | None = None
+    text: str = ""
+    warnings: tuple[Diagnostic, ...] = ()
+
+    def phase_offsets(self, channel: int) -> np.ndarray:
+        """Per-antenna phase offsets for a channel (zeros when the rig has no calibration for it)."""
+        offsets = self.phase_offsets_rad.get(channel, self.phase_offsets_rad.get(None))
+        return offsets if offsets is not None else np.zeros(len(self.antenna_positions_m))
+
+    def tag_on(self, channel: int) -> TagSpec | None:
+        return next((t for t in self.tags if t.channel == channel), None)
+
+
+class _Reader:
+    def __init__(self, doc: Located):
+        self.doc = doc
+        self.errors: list[Diagnostic] = []
+        self.warnings: list[Diagnostic] = []
+
+    def error(self, path: tuple, message: str, key: bool = False) -> None:
+        self.errors.append(self.doc.diag(path, message, key=key))
+
+    def section(self, data: Any, path: tuple, allowed: tuple[str, ...], what: str) -> dict:
+        if data is None:
+            return {}
+        if not isinstance(data, dict):
+            self.error(path, f"{what} must be a mapping")
+            return {}
+        for key in data:
+            if key not in allowed:
+                self.warnings.append(self.doc.diag(path + (key,), f"unknown key {key!r} in {what} is ignored"
+                                                   f"{did_you_mean(key, allowed)}", key=True))
+        return data
+
+    def numbers(self, value: Any, path: tuple, what: str, length: int | None = None) -> list[float] | None:
+        ok = isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        if not ok or (length is not None and len(value) != length):
+            size = f"{length} " if length is not None else ""
+            self.error(path, f"{what} must be a list of {size}numbers, got {value!r}")
+            return None
+        return [float(v) for v in value]
+
+    def channel(self, value: Any, path: tuple, what: str) -> int | None:
+        try:
+            channel_freq_hz(value)
+            if isinstance(value, int) and not isinstance(value, bool):
+                return value
+        except (TypeError, ValueError):
+            pass
+        self.error(path, f"{what}: {value!r} is not a WiFi channel number")
+        return None
+
+
+def parse_rig(doc: Located) -> Rig:
+    """Check a loaded setup document; raise SpecError with every problem found."""
+    r = _Reader(doc)
+    top = r.section(doc.data, (), TOP_KEYS, "the setup")
+    receiver = r.section(top.get("receiver"), ("receiver",), RECEIVER_KEYS, "receiver")
+
+    positions = receiver.get("antenna_positions_m")
+    antennas = np.zeros((0, 2))
+    if not isinstance(positions, list) or len(positions) < 2:
+        r.error(("receiver", "antenna_positions_m") if positions is not None else ("receiver",),
+                "receiver.antenna_positions_m must list at least two antenna positions [x, y] in metres")
+    else:
+        rows = [r.numbers(p, ("receiver", "antenna_positions_m", i), f"antenna {i} position")
+                for i, p in enumerate(positions)]
+        if all(row is not None and len(row) in (2, 3) for row in rows):
+            antennas = np.array([row[:2] for row in rows])
+        elif all(row is not None for row in rows):
+            r.error(("receiver", "antenna_positions_m"), "antenna positions are [x, y] (or [x, y, z]) in metres")
+
+    offsets: dict[int | None, np.ndarray] = {}
+    raw_offsets = receiver.get("phase_offsets_rad")
+    items = raw_offsets.items() if isinstance(raw_offsets, dict) else [(None, raw_offsets)] if raw_offsets is not None else []
+    for ch, values in items:
+        path = ("receiver", "phase_offsets_rad") + ((ch,) if ch is not None else ())
+        if ch is not None and r.channel(ch, path, "phase_offsets_rad key") is None:
+            continue
+        row = r.numbers(values, path, "phase offsets", len(antennas) or None)
+        if row is not None:
+            offsets[ch] = np.array(row)
+
+    excitation = r.section(top.get("excitation"), ("excitation",), ("channel",), "excitation")
+    exc_channel = r.channel(excitation.get("channel"), ("excitation", "channel"), "excitation.channel") \
+        if "channel" in excitation else None
+    if exc_channel is None and "channel" not in excitation:
+        r.error(("excitation",) if "excitation" in top else (), "the setup needs excitation: {channel: N}")
+
+    tags: list[TagSpec] = []
+    raw_tags = top.get("tags", [])
+    if not isinstance(raw_tags, list):
+        r.error(("tags",), "tags must be a list of {id, channel} or {id, shift_hz}")
+        raw_tags = []
+    for i, raw in enumerate(raw_tags):
+        tag = r.section(raw, ("tags", i), TAG_KEYS, f"tag {i}")
+        tag_id = tag.get("id")
+        if not isinstance(tag_id, int) or isinstance(tag_id, bool) or tag_id < 0:
+            r.error(("tags", i), f"tag {i} needs a non-negative integer id")
+            continue
+        if any(t.id == tag_id for t in tags):
+            r.error(("tags", i, "id"), f"tag id {tag_id} appears twice")
+        spec = _tag(r, ("tags", i), tag_id, tag, exc_channel)
+        if spec is not None:
+            tags.append(spec)
+
+    topics = dict(DEFAULT_TOPICS)
+    for key, value in r.section(top.get("topics"), ("topics",), tuple(DEFAULT_TOPICS), "topics").items():
+        if value is not None and not (isinstance(value, str) and value.startswith("/")):
+            r.error(("topics", key), f"topic {key} must be a name starting with '/' or null, got {value!r}")
+        else:
+            topics[key] = value
+
+    imu_raw = r.section(top.get("imu"), ("imu",), IMU_KEYS, "imu")
+    imu = ImuMount()
+    if imu_raw:
+        rpy = r.numbers(imu_raw.get("rotation_rpy_deg", [0, 0, 0]), ("imu", "rotation_rpy_deg"), "rotation_rpy_deg", 3)
+        pos = r.numbers(imu_raw.get("position_m", [0, 0, 0]), ("imu", "position_m"), "position_m", 3)
+        rate = imu_raw.get("rate_hz")
+        if rate is not None and not (isinstance(rate, (int, float)) and rate > 0):
+            r.error(("imu", "rate_hz"), f"imu.rate_hz must be a positive number, got {rate!r}")
+            rate = None
+        imu = ImuMount(str(imu_raw.get("frame_id", "imu_link")), float(rate) if rate else None,
+                       tuple(rpy or (0.0, 0.0, 0.0)), tuple(pos or (0.0, 0.0, 0.0)))
+
+    sweep = r.section(top.get("sweep"), ("sweep",), ("dwell_s",), "sweep")
+    dwell = sweep.get("dwell_s")
+    if dwell is not None and not (isinstance(dwell, (int, float)) and dwell > 0):
+        r.error(("sweep", "dwell_s"), f"sweep.dwell_s must be a positive number, got {dwell!r}")
+        dwell = None
+
+    if r.errors:
+        raise SpecError(r.errors + r.warnings)
+    interface = receiver.get("interface", "wlan0")
+    return Rig(antennas, exc_channel, tuple(tags), offsets, str(interface), topics, imu,
+               float(dwell) if dwell else None, "", tuple(r.warnings))
+
+
+def _tag(r: _Reader, path: tuple, tag_id: int, tag: dict, exc_channel: int | None) -> TagSpec | None:
+    channel = r.channel(tag["channel"], path + ("channel",), f"tag {tag_id} channel") if "channel" in tag else None
+    shift = tag.get("shift_hz")
+    if "channel" in tag and channel is None:
+        return None
+    if exc_channel is None:
+        return None
+    f_c = channel_freq_hz(exc_channel)
+    if shift is not None:
+        if not (isinstance(shift, (int, float)) and shift > 0):
+            r.error(path + ("shift_hz",), f"tag {tag_id} shift_hz must be a positive frequency in Hz")
+            return None
+        sides = [c for c in (freq_channel(f_c - shift), freq_channel(f_c + shift)) if c in INTEL5300_CHANNELS_5GHZ]
+        if channel is None:
+            if len(sides) != 1:
+                r.error(path + ("shift_hz",), f"tag {tag_id}: a shift of {shift / 1e6:g} MHz from channel "
+                        f"{exc_channel} lands on {'no channel' if not sides else 'channels ' + str(sides)}; "
+                        "give its channel too")
+                return None
+            channel = sides[0]
+        elif channel not in sides:
+            r.error(path, f"tag {tag_id}: channel {channel} is not {shift / 1e6:g} MHz from channel {exc_channel}")
+            return None
+        return TagSpec(tag_id, channel, float(shift))
+    if channel is None:
+        r.error(path, f"tag {tag_id} needs a channel or a shift_hz")
+        return None
+    return TagSpec(tag_id, channel, abs(channel_freq_hz(channel) - f_c))
+
+
+def rig_from_text(text: str, file: str = "setup.yaml") -> Rig:
+    """Parse and check a rig description given as YAML text (a RigSetup message, MCAP metadata)."""
+    return replace(parse_rig(load(text, file)), text=text)
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and check a setup.yaml file."""
+    doc = read_document(path)
+    return replace(parse_rig(doc), text=Path(path).read_text(encoding="utf-8"))

@@ -1,0 +1,41 @@
+"""WiFi facts the front end needs: channel numbers and centre frequencies, the Intel 5300's channel
+list, and the subcarriers the CSI Tool reports."""
+
+from __future__ import annotations
+
+import numpy as np
+
+SUBCARRIER_SPACING_HZ = 312_500.0
+CHANNEL_WIDTH_HZ = 20e6
+SPEED_OF_LIGHT_M_S = 299_792_458.0
+
+INTEL5300_CHANNELS_5GHZ = (36, 40, 44, 48, 52, 56, 60, 64, 100, 104, 108, 112, 116, 120, 124, 128, 132, 136, 140,
+                           149, 153, 157, 161, 165)
+"""The 20 MHz channels of the 5 GHz band the Intel 5300 tunes to."""
+
+SUBCARRIERS_20MHZ = np.array([*range(-28, -1, 2), -1, 1, *range(3, 28, 2), 28])
+"""Subcarrier indices the CSI Tool reports at 20 MHz (grouping Ng = 2): not evenly spaced near DC."""
+SUBCARRIERS_40MHZ = np.array([*range(-58, -1, 4), *range(2, 59, 4)])
+
+
+def channel_freq_hz(channel: int) -> float:
+    """Centre frequency of a WiFi channel (2.4 GHz channels 1-14, 5 GHz channels 32-177)."""
+    if channel == 14:
+        return 2484e6
+    if 1 <= channel <= 13:
+        return 2407e6 + 5e6 * channel
+    if 32 <= channel <= 177:
+        return 5000e6 + 5e6 * channel
+    raise ValueError(f"no WiFi channel {channel}")
+
+
+def freq_channel(freq_hz: float) -> int | None:
+    """The 5 GHz channel number centred exactly on `freq_hz`, if any."""
+    number = (freq_hz - 5000e6) / 5e6
+    return int(round(number)) if abs(number - round(number)) < 1e-6 and 32 <= round(number) <= 177 else None
+
+
+def subcarrier_freqs_hz(channel: int, width_hz: float = CHANNEL_WIDTH_HZ) -> np.ndarray:
+    """Absolute frequencies of the 30 reported subcarriers of a channel."""
+    index = SUBCARRIERS_20MHZ if width_hz == CHANNEL_WIDTH_HZ else SUBCARRIERS_40MHZ
+    return channel_freq_hz(channel) + index * SUBCARRIER_SPACING_HZ

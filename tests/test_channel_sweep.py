@@ -1,0 +1,66 @@
+"""`channel_sweep`: frames labelled with the tag owning their channel, the schedule, conflicts by mode."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from conftest import T0_NS
+from rover.errors import BadInput
+from rover.messages import header, make
+from rover.operators.channel_sweep import ChannelSweep, SweepParams
+
+SETUP = """\
+receiver: {antenna_positions_m: [[0, 0], [0.0258, 0], [0.0129, -0.0223]]}
+excitation: {channel: 165}
+tags: [{id: 1, channel: 149}, {id: 2, channel: 153}, {id: 3, channel: 157}, {id: 4, channel: 161}]
+"""
+
+
+def frame(channel: int, i: int):
+    return make("rover_msgs/msg/CsiFrame", header=header(T0_NS + i), channel=channel,
+                bfee=np.array([0xBB, i % 256], dtype=np.uint8))
+
+
+def setup_msg(text: str = SETUP):
+    return make("rover_msgs/msg/RigSetup", header=header(T0_NS), setup_yaml=text)
+
+
+def run(op: ChannelSweep, items):
+    out = []
+    for port, msg in items:
+        out += list(op.on_input(port, msg, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec))
+    return out + list(op.on_end())
+
+
+def test_labels_frames_and_sends_the_schedule(caplog):
+    op = ChannelSweep()
+    early = frame(153, 0)
+    items = [("frames", early), ("setup", setup_msg())] + [("frames", frame(ch, i + 1)) for i, ch in
+                                                          enumerate([149, 161, 100, 157, 100])]
+    with caplog.at_level(logging.WARNING):
+        out = run(op, items)
+    schedule = [e.msg for e in out if e.port == "schedule"]
+    assert len(schedule) == 1
+    assert schedule[0].channels.tolist() == [149, 153, 157, 161] and schedule[0].tag_ids.tolist() == [1, 2, 3, 4]
+    assert schedule[0].dwell_s == 0.05 and schedule[0].excitation_channel == 165
+    labelled = [(e.msg.channel, e.msg.tag_id, int(e.msg.bfee[1])) for e in out if e.port == "labelled"]
+    assert labelled == [(153, 2, 0), (149, 1, 1), (161, 4, 2), (157, 3, 4)]
+    assert "2 CSI frames dropped on channels no tag owns (channel 100: 2)" in caplog.text
+    assert "tag 4's 3rd harmonic" in caplog.text and "a conflict-free assignment" in caplog.text
+
+
+def test_conflicts_are_errors_when_planning_a_live_sweep():
+    op = ChannelSweep(SweepParams(mode="live"))
+    with pytest.raises(BadInput, match="1 conflict.*tag 4's 3rd harmonic.*tag 4 -> "):
+        list(op.on_input("setup", setup_msg(), T0_NS))
+    clean = ChannelSweep(SweepParams(mode="live"))
+    out = list(clean.on_input("setup", setup_msg(SETUP.replace(", {id: 4, channel: 161}", "")), T0_NS))
+    assert [e.port for e in out] == ["schedule"]
+
+
+def test_a_bad_rig_on_the_wire_is_bad_input():
+    with pytest.raises(BadInput, match="rig description on the setup input"):
+        list(ChannelSweep().on_input("setup", setup_msg("excitation: {channel: nope}"), T0_NS))
