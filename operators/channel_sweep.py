@@ -35,7 +35,9 @@ class SweepParams:
 class ChannelSweep(Operator):
     """Labels CSI frames with the tag owning their channel; sends the sweep schedule once the rig is known."""
 
-    inputs = {"frames": In("rover_msgs/msg/CsiFrame"), "setup": In("rover_msgs/msg/RigSetup")}
+    inputs = {"frames": In("rover_msgs/msg/CsiFrame"), "setup": In("rover_msgs/msg/RigSetup"),
+              "hops": In("rover_msgs/msg/ChannelHop", required=False,
+                         doc="live retuning events; frames with channel 0 take the channel tuned at their stamp")}
     outputs = {"labelled": Out("rover_msgs/msg/LabelledCsiFrame"),
                "schedule": Out("rover_msgs/msg/SweepSchedule")}
     Params = SweepParams
@@ -48,9 +50,12 @@ class ChannelSweep(Operator):
         self.owner: dict[int, int] = {}
         self.waiting: list[tuple[Any, int]] = []
         self.unowned: Counter = Counter()
+        self.tuned = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
-        if port == "setup":
+        if port == "hops":
+            self.tuned = msg.channel
+        elif port == "setup":
             yield from self._configure(msg.setup_yaml, stamp_ns)
             for frame, stamp in self.waiting:
                 yield from self._label(frame, stamp)
@@ -90,12 +95,13 @@ class ChannelSweep(Operator):
                                     dwell_s=dwell, max_tags=len(best)))
 
     def _label(self, frame: Any, stamp_ns: int):
-        tag = self.owner.get(frame.channel)
+        channel = frame.channel or self.tuned
+        tag = self.owner.get(channel)
         if tag is None:
-            self.unowned[frame.channel] += 1
+            self.unowned[channel] += 1
             return
         yield Emit("labelled", make("rover_msgs/msg/LabelledCsiFrame", header=frame.header, tag_id=tag,
-                                    channel=frame.channel, bfee=frame.bfee), stamp_ns)
+                                    channel=channel, bfee=frame.bfee), stamp_ns)
 
     def on_end(self):
         if self.waiting:

@@ -10,6 +10,7 @@ from rover.operator import Operator
 BUILTINS: dict[str, str] = {
     "dataset_replay": "rover.drivers.replay:DatasetReplay",
     "channel_sweep": "rover.operators.channel_sweep:ChannelSweep",
+    "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "recorder": "rover.drivers.recorder:Recorder",
 }
 """Short name -> `module:Class`; modules are imported only when a pipeline uses them."""

@@ -64,3 +64,14 @@ def test_conflicts_are_errors_when_planning_a_live_sweep():
 def test_a_bad_rig_on_the_wire_is_bad_input():
     with pytest.raises(BadInput, match="rig description on the setup input"):
         list(ChannelSweep().on_input("setup", setup_msg("excitation: {channel: nope}"), T0_NS))
+
+
+def test_live_frames_take_the_channel_tuned_at_their_stamp():
+    op = ChannelSweep()
+    hop = lambda ch, i: make("rover_msgs/msg/ChannelHop", header=header(T0_NS + i), interface="wlan0", channel=ch)
+    items = [("setup", setup_msg()), ("hops", hop(149, 1)), ("frames", frame(0, 2)), ("frames", frame(0, 3)),
+             ("hops", hop(157, 4)), ("frames", frame(0, 5)), ("hops", hop(100, 6)), ("frames", frame(0, 7))]
+    out = run(op, items)
+    labelled = [(e.msg.channel, e.msg.tag_id) for e in out if e.port == "labelled"]
+    assert labelled == [(149, 1), (149, 1), (157, 3)]
+    assert op.unowned == {100: 1}
