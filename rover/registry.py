@@ -11,6 +11,7 @@ BUILTINS: dict[str, str] = {
     "dataset_replay": "rover.drivers.replay:DatasetReplay",
     "channel_sweep": "rover.operators.channel_sweep:ChannelSweep",
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
+    "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
     "recorder": "rover.drivers.recorder:Recorder",
 }
 """Short name -> `module:Class`; modules are imported only when a pipeline uses them."""
