@@ -94,6 +94,16 @@ def cmd_graph(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_info(args: argparse.Namespace) -> int:
+    import json
+
+    from rover.datasets.info import dataset_info, render
+
+    info = dataset_info(args.path)
+    sys.stdout.write(json.dumps(info.as_json(), indent=2) + "\n" if args.json else render(info))
+    return 0
+
+
 def _add_set(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline")
 
@@ -124,6 +134,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=("mermaid", "dot"), default="mermaid")
     _add_set(p)
     p.set_defaults(func=cmd_graph)
+
+    p = sub.add_parser("info", help="what a dataset holds, like `ros2 bag info`")
+    p.add_argument("path")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(func=cmd_info)
     return ap
 
 

@@ -1,0 +1,112 @@
+"""`rover info`: what a dataset holds, read from the MCAP summary (no full scan except to count CSI per channel)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from rover.errors import BadInput
+from rover.messages import deserialize
+
+SETUP_METADATA = "rover.setup"
+PROVENANCE_METADATA = "rover.provenance"
+
+
+@dataclass
+class TopicInfo:
+    name: str
+    type: str
+    count: int
+    rate_hz: float
+
+
+@dataclass
+class DatasetInfo:
+    path: str
+    start_ns: int
+    end_ns: int
+    duration_s: float
+    message_count: int
+    topics: list[TopicInfo]
+    setup: str | None
+    csi_packets_per_channel: dict[int, int] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["csi_packets_per_channel"] = {str(k): v for k, v in self.csi_packets_per_channel.items()}
+        del out["metadata"]
+        return out
+
+
+def dataset_info(path: str | Path, csi_topic: str = "/csi") -> DatasetInfo:
+    """Summarize a dataset; BadInput when it is not a readable MCAP file."""
+    path = Path(path)
+    if not path.is_file():
+        raise BadInput(f"{path}: no such dataset file")
+    try:
+        with path.open("rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is None or summary.statistics is None:
+                raise BadInput(f"{path}: MCAP file has no summary (was it closed properly?)")
+            stats = summary.statistics
+            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            per_channel: Counter = Counter()
+            if any(c.topic == csi_topic for c in summary.channels.values()):
+                for _s, _c, message in reader.iter_messages(topics=[csi_topic], log_time_order=False):
+                    per_channel[int(deserialize(message.data, "rover_msgs/msg/CsiFrame").channel)] += 1
+    except (McapError, OSError, ValueError, EOFError) as exc:
+        raise BadInput(f"{path}: not a readable MCAP dataset: {exc}") from None
+    duration_s = (stats.message_end_time - stats.message_start_time) / 1e9 if stats.message_count else 0.0
+    topics = []
+    for channel in sorted(summary.channels.values(), key=lambda c: c.topic):
+        schema = summary.schemas.get(channel.schema_id)
+        count = stats.channel_message_counts.get(channel.id, 0)
+        topics.append(TopicInfo(channel.topic, schema.name if schema else "", count,
+                                count / duration_s if duration_s > 0 else 0.0))
+    return DatasetInfo(str(path), stats.message_start_time, stats.message_end_time, duration_s, stats.message_count,
+                       topics, metadata.get(SETUP_METADATA, {}).get("yaml"), dict(sorted(per_channel.items())),
+                       metadata)
+
+
+def render(info: DatasetInfo) -> str:
+    """Text like `ros2 bag info`, plus the rig and CSI packets per tag channel."""
+    lines = [
+        f"Files:             {info.path}",
+        f"Duration:          {info.duration_s:.3f} s",
+        f"Start:             {info.start_ns / 1e9:.9f}",
+        f"End:               {info.end_ns / 1e9:.9f}",
+        f"Messages:          {info.message_count}",
+        "Topics:",
+    ]
+    width = max((len(t.name) for t in info.topics), default=0)
+    for t in info.topics:
+        lines.append(f"  {t.name:<{width}}  {t.type:<36} {t.count:>8} msgs  {t.rate_hz:8.2f} Hz")
+    if info.csi_packets_per_channel:
+        lines.append("CSI packets per channel:")
+        tags = _tags_by_channel(info.setup)
+        for ch, n in info.csi_packets_per_channel.items():
+            owner = f"  (tag {tags[ch]})" if ch in tags else "  (no tag)" if tags else ""
+            lines.append(f"  channel {ch:>3}: {n:>8}{owner}")
+    if info.setup:
+        lines.append("Rig (rover.setup):")
+        lines += [f"  {line}" for line in info.setup.strip().splitlines()]
+    return "\n".join(lines) + "\n"
+
+
+def _tags_by_channel(setup: str | None) -> dict[int, int]:
+    if not setup:
+        return {}
+    from rover.errors import SpecError
+    from rover.rig import rig_from_text
+
+    try:
+        return {t.channel: t.id for t in rig_from_text(setup, SETUP_METADATA).tags}
+    except SpecError:
+        return {}
