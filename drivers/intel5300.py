@@ -53,6 +53,8 @@ class CsiRecords:
     perm: np.ndarray
     rate: np.ndarray
     csi: np.ndarray
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    """Byte offset of each record's length prefix in the log (for decode_bfee: the input's index)."""
     n_skipped: int = 0
     """Records with other codes than 0xBB (e.g. 0xC1), skipped."""
     n_corrupt: int = 0
@@ -244,7 +246,9 @@ def _scale(csi: np.ndarray, rssi, noise, agc, nrx, ntx) -> None:
 
 
 def _records(buf: np.ndarray, framing: _Framing, scaled: bool) -> CsiRecords:
-    records = _decode(buf, framing.offsets(), scaled)
+    offsets = framing.offsets()
+    records = _decode(buf, offsets, scaled)
+    records.offset = offsets - LENGTH_BYTES
     records.n_skipped, records.n_corrupt, records.n_garbage_bytes = framing.skipped, framing.corrupt, framing.garbage
     return records
 
@@ -262,10 +266,17 @@ def read_dat(path: str | Path, scaled: bool = True) -> CsiRecords:
     return decode_log(Path(path).read_bytes(), scaled)
 
 
-def decode_bfee(records: Iterable[bytes], scaled: bool = True) -> CsiRecords:
-    """Decode records given without their length prefix (code byte then notification, as in CsiFrame.bfee)."""
-    data = b"".join(len(r).to_bytes(2, "big") + bytes(r) for r in records)
-    return decode_log(data, scaled)
+def decode_bfee(records: Sequence[bytes], scaled: bool = True) -> CsiRecords:
+    """Decode records given without their length prefix (code byte then notification, as in CsiFrame.bfee).
+
+    `offset` of the result holds the index of the input each decoded row came from; inputs that
+    are not valid beamforming records have no row (and are counted as skipped or corrupt).
+    """
+    records = [bytes(r) for r in records]
+    starts = np.cumsum([0] + [len(r) + LENGTH_BYTES for r in records])
+    out = decode_log(b"".join(len(r).to_bytes(2, "big") + r for r in records), scaled)
+    out.offset = np.searchsorted(starts, out.offset)
+    return out
 
 
 def split_records(data: bytes) -> tuple[list[bytes], _Framing]:
@@ -316,7 +327,7 @@ def concat(parts: Sequence[CsiRecords]) -> CsiRecords:
     csi = [np.pad(p.csi, ((0, 0), (0, 0), (0, nrx_max - p.csi.shape[2]), (0, ntx_max - p.csi.shape[3])))
            for p in parts]
     fields = ("timestamp_low", "bfee_count", "nrx", "ntx", "rssi", "noise", "agc", "antenna_sel", "perm", "rate")
-    joined = {f: np.concatenate([getattr(p, f) for p in parts]) for f in fields}
+    joined = {f: np.concatenate([getattr(p, f) for p in parts]) for f in fields + ("offset",)}
     return CsiRecords(**joined, csi=np.concatenate(csi) if csi else np.zeros((0, SUBCARRIERS, 1, 1), complex),
                       n_skipped=sum(p.n_skipped for p in parts), n_corrupt=sum(p.n_corrupt for p in parts),
                       n_garbage_bytes=sum(p.n_garbage_bytes for p in parts),

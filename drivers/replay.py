@@ -7,6 +7,7 @@ on `setup`, stamped at the first message.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Iterator
@@ -17,9 +18,12 @@ from typing import Literal
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
-from rover.errors import BadInput
+from rover.errors import BadInput, SpecError
 from rover.messages import Raw, header, message_class
 from rover.operator import Emit, Out, Source, Watermark
+from rover.rig import load_rig
+
+log = logging.getLogger("rover.dataset_replay")
 
 SETUP_METADATA = "rover.setup"
 DEFAULT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
@@ -30,6 +34,8 @@ class ReplayParams:
     path: str = ""
     speed: Literal["max"] | float = "max"
     topics: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TOPICS))
+    setup: str = ""
+    """A setup.yaml to send instead of the dataset's own rig description (or when it has none)."""
 
 
 class DatasetReplay(Source):
@@ -59,6 +65,14 @@ class DatasetReplay(Source):
         self._port_of = {topic: port for port, topic in p.topics.items()}
         self._setup_yaml, self._channels, self._total = self._inspect()
         self._done = 0
+        if p.setup:
+            try:
+                rig = load_rig(p.setup)
+            except SpecError as exc:
+                raise BadInput("; ".join(str(d) for d in exc.diagnostics)) from None
+            if self._setup_yaml is not None:
+                log.warning("dataset_replay: %s replaces the rig description stored in %s", p.setup, self.path)
+            self._setup_yaml = rig.text
 
     def _inspect(self) -> tuple[str | None, dict[str, str], int]:
         """Read the summary: which wanted topics exist with the right types, and the rig description."""

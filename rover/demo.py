@@ -12,6 +12,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 from mcap.reader import make_reader
 from rich.console import Console
 from rich.table import Table
@@ -19,26 +20,31 @@ from rich.table import Table
 from rover import cli
 from rover.messages import deserialize
 
-SAMPLE = Path("recording_sample") / "bag" / "bag.mcap"
+SAMPLE = Path("recording_sample")
 
 
-def default_dataset() -> Path | None:
+def default_dataset() -> tuple[Path, Path] | None:
+    """The sample recording's bag and setup, when shared/data sits beside the repository."""
     root = Path(os.environ.get("ROVER_TEST_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-    path = root / SAMPLE
-    return path if path.is_file() else None
+    bag, setup = root / SAMPLE / "bag" / "bag.mcap", root / SAMPLE / "setup.yaml"
+    return (bag, setup) if bag.is_file() and setup.is_file() else None
 
 
 def summarize(path: Path, console: Console) -> None:
     counts: Counter = Counter()
-    channels: Counter = Counter()
+    tags: Counter = Counter()
+    snr: dict[int, list[float]] = {}
     first = last = None
     with path.open("rb") as f:
         for _schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
             counts[channel.topic] += 1
             first = message.log_time if first is None else min(first, message.log_time)
             last = message.log_time if last is None else max(last, message.log_time)
-            if channel.topic == "/csi":
-                channels[deserialize(message.data, "rover_msgs/msg/CsiFrame").channel] += 1
+            if channel.topic == "/rover/csi":
+                csi = deserialize(message.data, "rover_msgs/msg/Csi")
+                tags[(csi.tag_id, csi.channel)] += 1
+                power = float(np.mean(csi.csi_real.astype(np.float64) ** 2 + csi.csi_imag.astype(np.float64) ** 2))
+                snr.setdefault(csi.tag_id, []).append(10 * np.log10(power) if power > 0 else np.nan)
     duration_s = (last - first) / 1e9 if counts else 0.0
     table = Table(title=f"What the pipeline recorded ({duration_s:.1f} s of data)")
     table.add_column("topic")
@@ -47,30 +53,39 @@ def summarize(path: Path, console: Console) -> None:
     for topic, n in sorted(counts.items()):
         table.add_row(topic, f"{n:,}", f"{n / duration_s:.1f} Hz" if duration_s else "-")
     console.print(table)
-    if channels:
-        per_channel = ", ".join(f"channel {ch}: {n:,}" for ch, n in sorted(channels.items()))
-        console.print(f"CSI frames by WiFi channel (one tag per channel): {per_channel}")
+    if tags:
+        per_tag = Table(title="Decoded CSI per tag")
+        for column in ("tag", "channel", "frames", "median SNR per subcarrier"):
+            per_tag.add_column(column, justify="right")
+        for (tag, ch), n in sorted(tags.items()):
+            per_tag.add_row(str(tag), str(ch), f"{n:,}", f"{np.nanmedian(snr[tag]):.1f} dB")
+        console.print(per_tag)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rover.demo", description=__doc__)
     ap.add_argument("--dataset", type=Path, default=None)
+    ap.add_argument("--setup", type=Path, default=None, help="setup.yaml, for a dataset without a rig description")
     ap.add_argument("--output", type=Path, default=Path("rover-out") / "demo")
     args = ap.parse_args(argv)
     console = Console()
-    dataset = args.dataset or default_dataset()
+    found = default_dataset()
+    dataset, setup = (args.dataset, args.setup) if args.dataset else found or (None, None)
     if dataset is None:
         console.print("rover demo: no dataset: pass --dataset PATH, or keep shared/data beside the repository "
                       "(set ROVER_TEST_DATA to point at it)", style="red")
         return 2
-    console.print(f"[bold]rover run[/] --dataset {dataset} --output {args.output}")
-    status = cli.main(["run", "--dataset", str(dataset), "--output", str(args.output)])
+    command = ["run", "--dataset", str(dataset), "--output", str(args.output)]
+    command += ["--set", f"setup={setup}"] if setup else []
+    console.print(f"[bold]rover {' '.join(command)}[/]")
+    status = cli.main(command)
     if status != 0:
         return status
-    result = args.output / "replay.mcap"
+    result = args.output / "results.mcap"
     summarize(result, console)
     console.print(f"Wrote {result}")
-    console.print("Stages so far: dataset replay -> recorder, over Zenoh. Draw the pipeline with `rover graph`.")
+    console.print("Stages so far: dataset replay -> channel sweep -> CSI decoding -> recorder, over Zenoh. "
+                  "Draw the pipeline with `rover graph`.")
     return 0
 
 

@@ -10,6 +10,7 @@ from rover.operator import Operator
 BUILTINS: dict[str, str] = {
     "dataset_replay": "rover.drivers.replay:DatasetReplay",
     "channel_sweep": "rover.operators.channel_sweep:ChannelSweep",
+    "csi_decode": "rover.operators.csi_decode:CsiDecode",
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
     "recorder": "rover.drivers.recorder:Recorder",

@@ -20,4 +20,4 @@ def test_dot_of_the_default_pipeline():
     out = proc.stdout
     assert out.startswith('digraph "rover" {') and out.rstrip().endswith("}")
     assert 'subgraph "cluster_nuc"' in out
-    assert '"replay" -> "record" [label="csi → csi\\nrover_msgs/CsiFrame"];' in out
+    assert '"replay" -> "sweep" [label="csi → frames\\nrover_msgs/CsiFrame"];' in out
