@@ -294,29 +294,38 @@ class StreamDecoder:
         self.scaled = scaled
         self._buf = bytearray()
         self._garbage = False
+        self.n_skipped = self.n_corrupt = self.n_garbage_bytes = 0
 
-    def _step(self, final: bool) -> tuple[CsiRecords, list[bytes]]:
+    def _frame(self, chunk: bytes, final: bool) -> tuple[np.ndarray, _Framing, int]:
+        self._buf += chunk
         buf = np.frombuffer(bytes(self._buf), dtype=np.uint8)
         framing = _Framing()
         pos, self._garbage = _frame(buf, 0, final, self._garbage, framing)
-        raw = [bytes(self._buf[o:o + (int(buf[o - 2]) << 8 | int(buf[o - 1]))]) for o in framing.offsets()]
-        records = _records(buf, framing, self.scaled)
-        del self._buf[:pos]
-        return records, raw
+        self.n_skipped += framing.skipped
+        self.n_corrupt += framing.corrupt
+        self.n_garbage_bytes += framing.garbage
+        return buf, framing, pos
 
     def feed(self, chunk: bytes) -> CsiRecords:
         """Add bytes; return the records they completed."""
-        self._buf += chunk
-        return self._step(False)[0]
-
-    def feed_raw(self, chunk: bytes) -> tuple[CsiRecords, list[bytes]]:
-        """Like `feed`, also returning each completed record's bytes (code byte + notification)."""
-        self._buf += chunk
-        return self._step(False)
+        return self._decode(chunk, final=False)
 
     def close(self) -> CsiRecords:
         """The stream ended: decide on what is left (a cut-off record counts as corrupt)."""
-        return self._step(True)[0]
+        return self._decode(b"", final=True)
+
+    def _decode(self, chunk: bytes, final: bool) -> CsiRecords:
+        buf, framing, pos = self._frame(chunk, final)
+        records = _records(buf, framing, self.scaled)
+        del self._buf[:pos]
+        return records
+
+    def records(self, chunk: bytes, final: bool = False) -> list[bytes]:
+        """Add bytes; return the beamforming records they completed, undecoded (code byte + notification)."""
+        buf, framing, pos = self._frame(chunk, final)
+        out = [bytes(self._buf[o:o + (int(buf[o - 2]) << 8 | int(buf[o - 1]))]) for o in framing.offsets()]
+        del self._buf[:pos]
+        return out
 
 
 def concat(parts: Sequence[CsiRecords]) -> CsiRecords:

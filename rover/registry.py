@@ -13,6 +13,7 @@ BUILTINS: dict[str, str] = {
     "csi_decode": "rover.operators.csi_decode:CsiDecode",
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
+    "csi_file": "rover.drivers.csi_file:CsiFile",
     "recorder": "rover.drivers.recorder:Recorder",
 }
 """Short name -> `module:Class`; modules are imported only when a pipeline uses them."""

@@ -1,0 +1,80 @@
+"""`csi_file`: CSI from a CSI Tool log file (`log_to_file` output), whole or followed as it grows.
+
+Records are sent as they are (code byte + notification) in CsiFrame messages stamped with the
+time they were read, the host receive time of this source: the NIC's timestamp_low wraps every
+71.6 minutes and drifts, so it is never used as time. Damaged stretches are skipped and counted.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rover.drivers.intel5300 import StreamDecoder
+from rover.errors import BadInput
+from rover.messages import header, make
+from rover.operator import Emit, Out, Source, Watermark
+
+log = logging.getLogger("rover.csi_file")
+CHUNK_BYTES = 1 << 16
+
+
+@dataclass(frozen=True)
+class CsiFileParams:
+    path: str = ""
+    follow: bool = False
+    """Keep reading as the file grows (like `tail -f`) until the run is stopped."""
+    channel: int = 0
+    """The channel the log was recorded on, or 0 when `channel_hop` announces the hops."""
+    poll_s: float = 0.05
+
+
+class CsiFile(Source):
+    """Reads a CSI Tool log and publishes its beamforming records."""
+
+    outputs = {"csi": Out("rover_msgs/msg/CsiFrame")}
+    Params = CsiFileParams
+
+    def __init__(self, params: CsiFileParams | None = None):
+        super().__init__(params)
+        if not self.params.path:
+            raise BadInput("csi_file: no log file given (params.path)")
+        self.path = Path(self.params.path)
+        try:
+            self._file = self.path.open("rb")
+        except OSError as exc:
+            raise BadInput(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        self.stream = StreamDecoder(scaled=False)
+        self.count = 0
+
+    def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
+        while not stop.is_set():
+            chunk = self._file.read(CHUNK_BYTES)
+            if not chunk:
+                if not self.params.follow:
+                    break
+                yield Watermark(time.time_ns())
+                stop.wait(self.params.poll_s)
+                continue
+            for record in self.stream.records(chunk):
+                yield self._frame(record)
+        for record in self.stream.records(b"", final=True):
+            yield self._frame(record)
+        s = self.stream
+        if s.n_skipped or s.n_corrupt or s.n_garbage_bytes:
+            log.warning("csi_file: %s: %d records with other codes skipped, %d corrupt records dropped, "
+                        "%d bytes of garbage skipped", self.path, s.n_skipped, s.n_corrupt, s.n_garbage_bytes)
+
+    def _frame(self, record: bytes) -> Emit:
+        self.count += 1
+        return Emit("csi", make("rover_msgs/msg/CsiFrame", header=header(time.time_ns(), "base_link"),
+                                channel=self.params.channel, bfee=np.frombuffer(record, dtype=np.uint8)))
+
+    def close(self, complete: bool = True) -> None:
+        self._file.close()
