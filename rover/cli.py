@@ -39,7 +39,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
     """Summary line and warnings of one pipeline or setup file; raises on problems."""
-    from rover.channel_plan import conflicts
+    from rover.channel_plan import best_excitation, conflicts, max_tags
     from rover.rig import parse_rig
     from rover.spec import read_document
     from rover.validation import check, parse
@@ -51,8 +51,11 @@ def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
         warnings += [f"{file}: warning: channel plan: {c.message}"
                      for c in conflicts(rig.excitation_channel, {t.id: t.channel for t in rig.tags})]
         tags = ", ".join(f"{t.id}@{t.channel}" for t in rig.tags)
+        best = best_excitation()
+        here = len(max_tags(rig.excitation_channel))
+        advice = "" if here >= best.max_tags else f"; channel {best.channel} would allow {best.max_tags}"
         return (f"{file}: ok: rig with {len(rig.antenna_positions_m)} antennas, excitation channel "
-                f"{rig.excitation_channel}, {len(rig.tags)} tags ({tags})"), warnings
+                f"{rig.excitation_channel} (at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"), warnings
     spec, problems = parse(doc, overrides)
     return check(spec, problems).summary(), []
 
