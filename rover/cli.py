@@ -107,6 +107,30 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_convert(args: argparse.Namespace) -> int:
+    import shlex
+
+    from rover.datasets.convert import convert, terminal_progress
+
+    roles = {}
+    for item in args.topic or []:
+        role, sep, name = item.partition("=")
+        if not sep or role not in ("csi", "imu", "odom"):
+            raise BadInput(f"--topic {item!r}: expected ROLE=/name with ROLE one of csi, imu, odom")
+        roles[role] = name
+    progress, done = terminal_progress()
+    try:
+        report = convert(args.sources, args.output, setup=args.setup, topics=roles, start=args.start, end=args.end,
+                         truth=args.truth, tags=args.tags, force=args.force,
+                         command_line=shlex.join(["rover", *sys.argv[1:]]), progress=progress)
+    finally:
+        done()
+    for line in report.lines():
+        print(line)
+    print(f"wrote {report.output}")
+    return 0
+
+
 def _add_set(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline")
 
@@ -137,6 +161,18 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=("mermaid", "dot"), default="mermaid")
     _add_set(p)
     p.set_defaults(func=cmd_graph)
+
+    p = sub.add_parser("convert", help="ROS 1/ROS 2 bags or a recording folder to a dataset")
+    p.add_argument("sources", nargs="+", metavar="SRC", help=".bag, ROS 2 bag folder, .db3, .mcap, recording folder")
+    p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
+    p.add_argument("--setup", help="setup.yaml (default: the recording folder's)")
+    p.add_argument("--topic", action="append", metavar="ROLE=/NAME", help="source topic of csi, imu or odom")
+    p.add_argument("--start", type=float, help="seconds from the start (or absolute seconds)")
+    p.add_argument("--end", type=float, help="seconds from the start (or absolute seconds)")
+    p.add_argument("--truth", help="ground-truth trajectory (TUM)")
+    p.add_argument("--tags", help="ground-truth tags (CSV: id,channel,x,y,z,nlos)")
+    p.add_argument("--force", action="store_true", help="replace an existing output")
+    p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser("info", help="what a dataset holds, like `ros2 bag info`")
     p.add_argument("path")

@@ -1,0 +1,342 @@
+"""`rover convert`: ROS 1 / ROS 2 bags (and recording folders) to a Rover dataset.
+
+A dataset is one MCAP file that is also a ROS 2 bag: `/csi`, `/imu/data`, optional `/odom`,
+optional ground truth (`/groundtruth/pose`, `/groundtruth/tags`), and the rig description and
+provenance as MCAP metadata. Messages are decoded with the source bag's own definitions, so
+custom definitions are honoured, and logged at their header stamp (event time).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import sys
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from rosbags.highlevel import AnyReader, AnyReaderError
+
+import rover
+from rover.datasets.bagfile import BagWriter
+from rover.datasets.truth import read_tags_csv, read_tum
+from rover.errors import BadInput, SpecError
+from rover.messages import header, make
+from rover.rig import Rig, load_rig
+
+log = logging.getLogger("rover.convert")
+
+ROLES = {"csi": "rover_msgs/msg/CsiFrame", "imu": "sensor_msgs/msg/Imu", "odom": "nav_msgs/msg/Odometry"}
+OUTPUT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
+TRUTH_POSE, TRUTH_TAGS = "/groundtruth/pose", "/groundtruth/tags"
+STANDARD_GRAVITY_M_S2 = 9.80665
+G_UNITS_BAND = (0.8, 1.2)
+"""Median |a| over the first second in this band (in the file's units) means the IMU reports g."""
+RECORDING_FILES = {"setup": "setup.yaml", "truth": "truth_robot.tum", "tags": "truth_tags.csv"}
+
+
+@dataclass
+class Report:
+    """What a conversion wrote and what it had to fix or drop."""
+
+    output: Path
+    topics: dict[str, str] = field(default_factory=dict)
+    """role -> source topic"""
+    written: Counter = field(default_factory=Counter)
+    dropped: Counter = field(default_factory=Counter)
+    resorted: Counter = field(default_factory=Counter)
+    imu_in_g: bool = False
+
+    def lines(self) -> list[str]:
+        out = [f"{role}: {topic} -> {OUTPUT_TOPICS.get(role, topic)}" for role, topic in self.topics.items()]
+        out += [f"wrote {n:,} messages on {topic}" for topic, n in sorted(self.written.items())]
+        return out
+
+
+@dataclass(frozen=True)
+class Sources:
+    bags: list[Path]
+    setup: Path | None
+    truth: Path | None
+    tags: Path | None
+
+
+def resolve_sources(paths: Sequence[str | Path]) -> Sources:
+    """Expand recording folders (a `bag/` folder with setup.yaml and truth files beside it)."""
+    bags: list[Path] = []
+    found: dict[str, Path] = {}
+    for raw in paths:
+        path = Path(raw)
+        if not path.exists():
+            raise BadInput(f"{path}: no such file or folder")
+        if path.is_dir() and (path / "bag").is_dir() and not (path / "metadata.yaml").exists():
+            bags.append(path / "bag")
+            for key, name in RECORDING_FILES.items():
+                if (path / name).is_file():
+                    found.setdefault(key, path / name)
+        elif path.is_file() and path.suffix == ".db3":
+            if not (path.parent / "metadata.yaml").is_file():
+                raise BadInput(f"{path}: a .db3 file needs the metadata.yaml of its bag folder beside it")
+            bags.append(path.parent)
+        else:
+            bags.append(path)
+    return Sources(bags, found.get("setup"), found.get("truth"), found.get("tags"))
+
+
+def _sha256(path: Path) -> str:
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    digest = hashlib.sha256()
+    for file in files:
+        with file.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+def _choose_topics(reader: AnyReader, rig: Rig, overrides: dict[str, str]) -> dict[str, str | None]:
+    """role -> source topic: --topic, else the setup's topics:, else the one topic of the role's type."""
+    by_topic = {c.topic: c.msgtype for c in reader.connections}
+    listing = ", ".join(f"{t} ({m})" for t, m in sorted(by_topic.items())) or "none"
+    chosen: dict[str, str | None] = {}
+    for role, msgtype in ROLES.items():
+        if role in overrides:
+            topic = overrides[role]
+        elif role in rig.topics and (rig.topics[role] is None or rig.topics[role] in by_topic):
+            topic = rig.topics[role]
+        else:
+            candidates = [t for t, m in by_topic.items() if m == msgtype]
+            topic = candidates[0] if len(candidates) == 1 else None
+            if len(candidates) > 1:
+                raise BadInput(f"several {msgtype} topics ({', '.join(candidates)}): choose one with --topic {role}=NAME")
+        if topic is not None and topic not in by_topic:
+            raise BadInput(f"topic {topic} for {role} is not in the bag; topics there: {listing}")
+        chosen[role] = topic
+    if chosen["imu"] is None:
+        raise BadInput(f"no IMU topic (sensor_msgs/msg/Imu) found; topics there: {listing}")
+    if chosen["csi"] is None and rig.topics.get("csi", "/csi") is not None:
+        raise BadInput(f"no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: {listing}. For an IMU/odometry-only "
+                       "dataset say so in the setup: topics: {csi: null}")
+    return chosen
+
+
+def _stamp(msg: Any, fallback_ns: int) -> int:
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    return stamp.sec * 1_000_000_000 + stamp.nanosec if stamp is not None else fallback_ns
+
+
+def _time_bound(value: float | None, start_ns: int) -> int | None:
+    """--start/--end: seconds from the start of the bag, or absolute seconds (anything past 1e9)."""
+    if value is None:
+        return None
+    return int(round(value * 1e9)) if value > 1e9 else start_ns + int(round(value * 1e9))
+
+
+def _finite(values: Sequence[float]) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+class _Imu:
+    """IMU checks: NaN and duplicate samples dropped, g units detected on the first second."""
+
+    def __init__(self, report: Report):
+        self.report = report
+        self.last_stamp: int | None = None
+        self.scale: float | None = None
+        self.pending: list[tuple[int, Any]] = []
+
+    def convert(self, stamp: int, msg: Any) -> list[tuple[int, Any]]:
+        a, w = msg.linear_acceleration, msg.angular_velocity
+        if not _finite((a.x, a.y, a.z, w.x, w.y, w.z)):
+            self.report.dropped["imu: NaN or infinite sample"] += 1
+            return []
+        if stamp == self.last_stamp:
+            self.report.dropped["imu: duplicate stamp"] += 1
+            return []
+        self.last_stamp = stamp
+        out = make("sensor_msgs/msg/Imu", header=header(stamp, msg.header.frame_id),
+                   orientation=make("geometry_msgs/msg/Quaternion", x=msg.orientation.x, y=msg.orientation.y,
+                                    z=msg.orientation.z, w=msg.orientation.w),
+                   orientation_covariance=np.asarray(msg.orientation_covariance, dtype=np.float64),
+                   angular_velocity=make("geometry_msgs/msg/Vector3", x=w.x, y=w.y, z=w.z),
+                   angular_velocity_covariance=np.asarray(msg.angular_velocity_covariance, dtype=np.float64),
+                   linear_acceleration=make("geometry_msgs/msg/Vector3", x=a.x, y=a.y, z=a.z),
+                   linear_acceleration_covariance=np.asarray(msg.linear_acceleration_covariance, dtype=np.float64))
+        if self.scale is None:
+            self.pending.append((stamp, out))
+            if stamp - self.pending[0][0] < 1_000_000_000:
+                return []
+            self._decide()
+            ready, self.pending = self.pending, []
+            return [(s, self._scaled(m)) for s, m in ready]
+        return [(stamp, self._scaled(out))]
+
+    def _decide(self) -> None:
+        norms = [math.sqrt(m.linear_acceleration.x ** 2 + m.linear_acceleration.y ** 2 + m.linear_acceleration.z ** 2)
+                 for _, m in self.pending]
+        in_g = bool(norms) and G_UNITS_BAND[0] < float(np.median(norms)) < G_UNITS_BAND[1]
+        self.scale = STANDARD_GRAVITY_M_S2 if in_g else 1.0
+        if in_g:
+            self.report.imu_in_g = True
+            log.warning("the IMU reports acceleration in g (|a| = %.2f at rest): converted to m/s^2", np.median(norms))
+
+    def _scaled(self, msg: Any) -> Any:
+        if self.scale != 1.0:
+            a = msg.linear_acceleration
+            a.x, a.y, a.z = a.x * self.scale, a.y * self.scale, a.z * self.scale
+        return msg
+
+    def flush(self) -> list[tuple[int, Any]]:
+        if self.scale is None and self.pending:
+            self._decide()
+        ready, self.pending = self.pending, []
+        return [(s, self._scaled(m)) for s, m in ready]
+
+
+def _csi(msg: Any, stamp: int) -> Any:
+    return make("rover_msgs/msg/CsiFrame", header=header(stamp, msg.header.frame_id), channel=int(msg.channel),
+                bfee=np.asarray(msg.bfee, dtype=np.uint8))
+
+
+def _odom(msg: Any, stamp: int) -> Any:
+    out = make("nav_msgs/msg/Odometry", header=header(stamp, msg.header.frame_id), child_frame_id=msg.child_frame_id)
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    out.pose.pose.position.x, out.pose.pose.position.y, out.pose.pose.position.z = p.x, p.y, p.z
+    o = out.pose.pose.orientation
+    o.x, o.y, o.z, o.w = q.x, q.y, q.z, q.w
+    out.pose.covariance = np.asarray(msg.pose.covariance, dtype=np.float64)
+    t_in, t_out = msg.twist.twist, out.twist.twist
+    t_out.linear.x, t_out.linear.y, t_out.linear.z = t_in.linear.x, t_in.linear.y, t_in.linear.z
+    t_out.angular.x, t_out.angular.y, t_out.angular.z = t_in.angular.x, t_in.angular.y, t_in.angular.z
+    out.twist.covariance = np.asarray(msg.twist.covariance, dtype=np.float64)
+    return out
+
+
+def _dataset_setup(rig: Rig) -> str:
+    """The rig description stored in the dataset, with topics renamed to the dataset's own."""
+    data = yaml.safe_load(rig.text) or {}
+    data["topics"] = {role: (OUTPUT_TOPICS[role] if rig.topics.get(role, "") is not None else None)
+                      for role in OUTPUT_TOPICS}
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def convert(paths: Sequence[str | Path], output: str | Path, *, setup: str | Path | None = None,
+            topics: dict[str, str] | None = None, start: float | None = None, end: float | None = None,
+            truth: str | Path | None = None, tags: str | Path | None = None, force: bool = False,
+            command_line: str = "", progress: Callable[[int, int], None] | None = None) -> Report:
+    """Convert bags to a dataset; the output appears only when complete."""
+    output = Path(output)
+    sources = resolve_sources(paths)
+    setup_path = Path(setup) if setup else sources.setup
+    if setup_path is None:
+        raise BadInput("no rig description: pass --setup setup.yaml (or convert a recording folder that has one)")
+    try:
+        rig = load_rig(setup_path)
+    except SpecError as exc:
+        raise BadInput("; ".join(str(d) for d in exc.diagnostics)) from None
+    truth = truth or sources.truth
+    tags = tags or sources.tags
+    if output.exists() and not force:
+        raise BadInput(f"{output}: exists (use --force to replace it)")
+    report = Report(output)
+    provenance = {"tool": f"rover {rover.__version__}", "command": command_line,
+                  "sources": yaml.safe_dump([{"path": str(p), "sha256": _sha256(p)} for p in
+                                             [*sources.bags, setup_path, *[Path(x) for x in (truth, tags) if x]]])}
+    try:
+        reader = AnyReader(sources.bags)
+        reader.open()
+    except (AnyReaderError, OSError, ValueError) as exc:
+        raise BadInput(f"{', '.join(map(str, sources.bags))}: cannot read as a ROS bag: {exc}") from None
+    try:
+        chosen = _choose_topics(reader, rig, topics or {})
+        report.topics = {role: topic for role, topic in chosen.items() if topic is not None}
+        for line in (f"{role}: {topic}" for role, topic in report.topics.items()):
+            log.info("topic %s", line)
+        if chosen["csi"] is None:
+            log.warning("the setup says topics: {csi: null}: writing an IMU/odometry-only dataset")
+        lo, hi = _time_bound(start, reader.start_time), _time_bound(end, reader.start_time)
+        role_of = {topic: role for role, topic in report.topics.items()}
+        connections = [c for c in reader.connections if c.topic in role_of]
+        total = sum(c.msgcount for c in connections)
+        imu = _Imu(report)
+        rows: list[tuple[int, int, str, Any]] = []
+        last: dict[str, int] = {}
+        for n, (conn, log_ns, raw) in enumerate(reader.messages(connections=connections)):
+            if progress is not None and n % 2000 == 0:
+                progress(n, total)
+            role = role_of[conn.topic]
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception:  # noqa: BLE001 - a message the bag's own definition cannot decode is dropped, counted
+                report.dropped[f"{role}: undecodable"] += 1
+                continue
+            stamp = _stamp(msg, log_ns)
+            if (lo is not None and stamp < lo) or (hi is not None and stamp > hi):
+                continue
+            if stamp < last.get(role, stamp):
+                report.resorted[role] += 1
+            last[role] = max(stamp, last.get(role, stamp))
+            if role == "imu":
+                converted = imu.convert(stamp, msg)
+            elif role == "csi":
+                converted = [(stamp, _csi(msg, stamp))]
+            else:
+                converted = [(stamp, _odom(msg, stamp))]
+            rows += [(s, len(rows) + k, OUTPUT_TOPICS[role], m) for k, (s, m) in enumerate(converted)]
+        rows += [(s, len(rows) + k, OUTPUT_TOPICS["imu"], m) for k, (s, m) in enumerate(imu.flush())]
+    finally:
+        reader.close()
+    for role, n in report.resorted.items():
+        log.warning("%d %s messages were out of stamp order: sorted", n, role)
+    for why, n in sorted(report.dropped.items()):
+        log.warning("dropped %d messages: %s", n, why)
+    rows.sort(key=lambda r: (r[0], r[1]))
+    first = rows[0][0] if rows else 0
+    rows += [(stamp, len(rows) + k, TRUTH_POSE if msg.__msgtype__ == "geometry_msgs/msg/PoseStamped" else TRUTH_TAGS,
+              msg) for k, (stamp, msg) in enumerate(_truth_messages(truth, tags, first))]
+    rows.sort(key=lambda r: (r[0], r[1]))
+    metadata = {"rover.setup": {"yaml": _dataset_setup(rig)}, "rover.provenance": provenance}
+    if tags:
+        metadata["rover.truth"] = {"tags_csv": Path(tags).read_text(encoding="utf-8")}
+    with BagWriter(output, metadata=metadata) as bag:
+        for stamp, _order, topic, msg in rows:
+            bag.write(topic, msg, stamp)
+            report.written[topic] += 1
+    return report
+
+
+def _truth_messages(truth: str | Path | None, tags: str | Path | None, first_ns: int):
+    if tags:
+        array = make("rover_msgs/msg/TagArray", header=header(first_ns, "world"), tags=[
+            make("rover_msgs/msg/Tag", id=t.id, channel=t.channel, observable=True,
+                 position=make("geometry_msgs/msg/Point", x=t.xyz[0], y=t.xyz[1], z=t.xyz[2]))
+            for t in read_tags_csv(tags)])
+        yield first_ns, array
+    if truth:
+        trajectory = read_tum(truth)
+        for stamp, xyz, q in zip(trajectory.stamp_ns.tolist(), trajectory.xyz, trajectory.quat_xyzw):
+            pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp, "world"))
+            p, o = pose.pose.position, pose.pose.orientation
+            p.x, p.y, p.z = (float(v) for v in xyz)
+            o.x, o.y, o.z, o.w = (float(v) for v in q)
+            yield stamp, pose
+
+
+def terminal_progress() -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:
+    """A progress callback drawing a bar on stderr when it is a terminal, and its closer."""
+    if not sys.stderr.isatty():
+        return None, lambda: None
+    from rich.progress import Progress
+
+    bar = Progress(transient=True)
+    task = bar.add_task("converting")
+    bar.start()
+
+    def update(done: int, total: int) -> None:
+        bar.update(task, completed=done, total=total)
+
+    return update, bar.stop

@@ -1,0 +1,148 @@
+"""`rover convert`: real ROS 1 and ROS 2 bags and a delivered recording folder to datasets."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin, Writer
+
+from conftest import T0_NS, read_bag, reference_data, run_rover
+from rover.datasets.convert import convert
+from rover.errors import BadInput
+from rover.messages import deserialize, header, make, serialize, typestore
+
+SETUP = """\
+receiver: {antenna_positions_m: [[0, 0], [0.0258, 0], [0.0129, -0.0223]]}
+excitation: {channel: 165}
+tags: [{id: 1, channel: 149}]
+"""
+
+
+def counts(path: Path) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for topic, _s, _d in read_bag(path):
+        out[topic] = out.get(topic, 0) + 1
+    return out
+
+
+def test_the_recording_folder_converts_as_it_is(tmp_path):
+    source = reference_data() / "recording_sample"
+    out = tmp_path / "rs.mcap"
+    proc = run_rover("convert", str(source), "-o", str(out))
+    assert proc.returncode == 0, proc.stderr
+    with AnyReader([source / "bag"]) as reader:
+        source_counts = {c.topic: c.msgcount for c in reader.connections}
+    got = counts(out)
+    assert {t: got[t] for t in source_counts} == source_counts
+    assert got["/groundtruth/tags"] == 1 and got["/groundtruth/pose"] == 11076
+    info = json.loads(run_rover("info", "--json", str(out)).stdout)
+    assert "0.9834" in info["setup"] and "tags" in info["setup"]
+    with AnyReader([out]) as reader:
+        assert {c.topic for c in reader.connections} >= {"/csi", "/imu/data", "/odom"}
+
+
+def test_the_real_ros1_bag_keeps_every_imu_sample(tmp_path):
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP + "topics: {csi: null, imu: /imu/data, odom: /jackal_velocity_controller/odom}\n")
+    bag = reference_data() / "bags" / "jackal_imu_odom.bag"
+    out = tmp_path / "jackal.mcap"
+    report = convert([bag], out, setup=setup)
+    assert report.written == {"/imu/data": 3061, "/odom": 3060}
+    with AnyReader([bag]) as reader:
+        conn = [c for c in reader.connections if c.topic == "/imu/data"]
+        source = [reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages(connections=conn)]
+    converted = [deserialize(d, "sensor_msgs/msg/Imu") for t, _s, d in read_bag(out) if t == "/imu/data"]
+    for a, b in zip(source, converted, strict=True):
+        assert (a.header.stamp.sec, a.header.stamp.nanosec) == (b.header.stamp.sec, b.header.stamp.nanosec)
+        for f in ("linear_acceleration", "angular_velocity"):
+            va, vb = getattr(a, f), getattr(b, f)
+            assert (va.x, va.y, va.z) == (vb.x, vb.y, vb.z)
+        np.testing.assert_array_equal(a.orientation_covariance, b.orientation_covariance)
+
+
+def write_ros2_bag(path: Path, storage: StoragePlugin) -> None:
+    """CSI and an IMU in g with a NaN sample, a duplicate and two samples out of order."""
+    with Writer(path, version=9, storage_plugin=storage) as writer:
+        csi = writer.add_connection("/wifi/csi", "rover_msgs/msg/CsiFrame", typestore=typestore)
+        imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=typestore)
+        stamps = [T0_NS + i * 5_000_000 for i in range(400)]
+        stamps[100], stamps[101] = stamps[101], stamps[100]
+        stamps.insert(200, stamps[199])
+        for i, stamp in enumerate(stamps):
+            g = make("geometry_msgs/msg/Vector3", x=0.01, y=-0.02, z=float("nan") if i == 300 else 1.0)
+            msg = make("sensor_msgs/msg/Imu", header=header(stamp, "imu"), linear_acceleration=g)
+            received = T0_NS + i * 5_000_000 + 1_000
+            writer.write(imu, received, serialize(msg))
+            if i % 10 == 0:
+                frame = make("rover_msgs/msg/CsiFrame", header=header(stamp + 1, "nic"), channel=149,
+                             bfee=np.arange(5, dtype=np.uint8))
+                writer.write(csi, received + 1, serialize(frame))
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP])
+def test_ros2_bags_with_the_usual_faults(tmp_path, storage, caplog):
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, storage)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    out = tmp_path / "out.mcap"
+    report = convert([bag], out, setup=setup, command_line="rover convert bag")
+    assert report.topics == {"csi": "/wifi/csi", "imu": "/imu"}
+    assert report.imu_in_g
+    assert report.dropped == {"imu: NaN or infinite sample": 1, "imu: duplicate stamp": 1}
+    assert report.resorted["imu"] == 1
+    imu = [deserialize(d, "sensor_msgs/msg/Imu") for t, _s, d in read_bag(out) if t == "/imu/data"]
+    assert len(imu) == 399
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in imu]
+    assert stamps == sorted(stamps) and len(set(stamps)) == 399
+    assert all(math.isclose(m.linear_acceleration.z, 9.80665) for m in imu)
+    assert sum(1 for t, _s, _d in read_bag(out) if t == "/csi") == 41
+
+
+def test_trimming_and_explicit_topics(tmp_path):
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, StoragePlugin.MCAP)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    out = tmp_path / "out.mcap"
+    report = convert([bag], out, setup=setup, start=0.5, end=1.0, topics={"imu": "/imu", "csi": "/wifi/csi"})
+    imu = [s for t, s, _d in read_bag(out) if t == "/imu/data"]
+    bag_start = T0_NS + 1_000  # the first message's receive time
+    assert min(imu) >= bag_start + 500_000_000 and max(imu) <= bag_start + 1_000_000_000
+    assert report.written["/imu/data"] == len(imu) == 100
+
+
+def test_a_bag_without_csi_is_the_documented_error(tmp_path):
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    proc = run_rover("convert", str(reference_data() / "bags" / "jackal_imu_odom.bag"), "--setup", str(setup),
+                     "-o", str(tmp_path / "x.mcap"))
+    assert proc.returncode == 2
+    assert "no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: /imu/data (sensor_msgs/msg/Imu)" in proc.stderr
+    assert "topics: {csi: null}" in proc.stderr
+    assert list(tmp_path.iterdir()) == [setup]
+
+
+def test_an_interrupted_conversion_leaves_nothing_and_outputs_are_kept(tmp_path):
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, StoragePlugin.MCAP)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    out = tmp_path / "out.mcap"
+
+    def interrupt(done: int, total: int) -> None:
+        if done:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        convert([bag], out, setup=setup, progress=lambda d, t: interrupt(d + 1, t))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "setup.yaml"]
+    convert([bag], out, setup=setup)
+    with pytest.raises(BadInput, match="exists"):
+        convert([bag], out, setup=setup)
+    convert([bag], out, setup=setup, force=True)
