@@ -10,6 +10,7 @@ The results match the tool's own `read_bf_file.m` and `get_scaled_csi.m`.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -341,3 +342,42 @@ def concat(parts: Sequence[CsiRecords]) -> CsiRecords:
                       n_skipped=sum(p.n_skipped for p in parts), n_corrupt=sum(p.n_corrupt for p in parts),
                       n_garbage_bytes=sum(p.n_garbage_bytes for p in parts),
                       scaled=parts[0].scaled if parts else True)
+
+
+@dataclass(frozen=True)
+class RecordHeader:
+    """Header fields of one beamforming record to encode (antenna_sel gives the permutation)."""
+
+    timestamp_low: int
+    bfee_count: int
+    rssi: tuple[int, int, int]
+    noise: int
+    agc: int
+    antenna_sel: int
+    rate: int
+
+
+def encode_record(head: RecordHeader, csi: np.ndarray) -> bytes:
+    """One record (code byte + notification) whose decoding gives back `csi`, shape (30, Nrx, Ntx) of
+    int8-valued complex numbers after the permutation: the exact inverse of the decoder's bit layout."""
+    csi = np.asarray(csi)
+    _, nrx, ntx = csi.shape
+    perm = ((head.antenna_sel >> (2 * np.arange(3))) & 3) + 1
+    chains = _antenna_order(perm, nrx)
+    raw = np.empty_like(csi)
+    raw[:, chains, :] = csi
+    m = nrx * ntx
+    length = payload_bytes(nrx, ntx)
+    bits = np.zeros(length * 8 + 16, dtype=np.uint8)
+    values = np.stack([raw.real.reshape(SUBCARRIERS, m), raw.imag.reshape(SUBCARRIERS, m)], axis=-1)
+    values = np.rint(values).astype(np.int64)
+    if values.min() < -128 or values.max() > 127:
+        raise CsiFormatError("CSI values must fit in int8")
+    start = (3 * (np.arange(SUBCARRIERS)[:, None, None] + 1) + 16 * (np.arange(SUBCARRIERS)[:, None, None] * m
+             + np.arange(m)[None, :, None]) + 8 * np.arange(2)[None, None, :])
+    positions = start[..., None] + np.arange(8)
+    bits[positions.ravel()] = ((values[..., None].astype(np.uint8) >> np.arange(8)) & 1).ravel()
+    payload = np.packbits(bits[:length * 8], bitorder="little").tobytes()
+    header = struct.pack("<IHHBBBBBbBBHH", head.timestamp_low & 0xFFFFFFFF, head.bfee_count & 0xFFFF, 0, nrx, ntx,
+                         *head.rssi, head.noise, head.agc, head.antenna_sel, length, head.rate)
+    return bytes([BFEE_CODE]) + header + payload

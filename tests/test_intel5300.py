@@ -177,3 +177,23 @@ def test_valid_records_after_damage_are_never_lost(small, junk, cut):
     it = iter(found)
     assert all(b in it for b in expected), "a valid record after damage was lost"
     same(stream(data, [min(cut, len(data))]), out)
+
+
+def test_encoding_is_the_exact_inverse(small):
+    from rover.drivers.intel5300 import RecordHeader, encode_record
+
+    raw = decode_log(small, scaled=False)
+    for i, record in enumerate(records_of(small)):
+        n, t = int(raw.nrx[i]), int(raw.ntx[i])
+        head = RecordHeader(int(raw.timestamp_low[i]), int(raw.bfee_count[i]), tuple(int(v) for v in raw.rssi[i]),
+                            int(raw.noise[i]), int(raw.agc[i]), int(raw.antenna_sel[i]), int(raw.rate[i]))
+        assert encode_record(head, raw.csi[i, :, :n, :t]) == record[2:]
+    rng = np.random.default_rng(5)
+    for sel in (0b100100, 0b011000, 0b001001, 0b010010, 0b000110, 0b100001):
+        for n, t in ((3, 1), (3, 2), (2, 2), (1, 3)):
+            csi = rng.integers(-128, 128, (30, n, t)) + 1j * rng.integers(-128, 128, (30, n, t))
+            head = RecordHeader(7, 9, (30, 31, 32), -92, 40, sel, 0x1101)
+            back = decode_bfee([encode_record(head, csi)], scaled=False)
+            np.testing.assert_array_equal(back.csi[0], csi)
+    with pytest.raises(CsiFormatError):
+        encode_record(RecordHeader(0, 0, (0, 0, 0), 0, 0, 0, 0), np.full((30, 3, 1), 200.0))
