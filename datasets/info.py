@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
@@ -41,6 +42,12 @@ class DatasetInfo:
         out = asdict(self)
         out["csi_packets_per_channel"] = {str(k): v for k, v in self.csi_packets_per_channel.items()}
         del out["metadata"]
+        simulation = self.metadata.get("rover.simulation", {}).get("yaml")
+        if simulation:
+            sim = yaml.safe_load(simulation) or {}
+            out["simulation"] = {k: sim.get(k) for k in ("scenario", "seed", "path_length_m", "nlos")}
+            out["simulation"]["direct_to_multipath_db"] = {str(k): v for k, v in
+                                                           (sim.get("direct_to_multipath_db") or {}).items()}
         return out
 
 
@@ -94,6 +101,15 @@ def render(info: DatasetInfo) -> str:
         for ch, n in info.csi_packets_per_channel.items():
             owner = f"  (tag {tags[ch]})" if ch in tags else "  (no tag)" if tags else ""
             lines.append(f"  channel {ch:>3}: {n:>8}{owner}")
+    simulation = info.metadata.get("rover.simulation", {}).get("yaml")
+    if simulation:
+        sim = yaml.safe_load(simulation) or {}
+        lines.append(f"Simulated: scenario {sim.get('scenario')}, seed {sim.get('seed')}, "
+                     f"path {sim.get('path_length_m')} m")
+        lines.append("Direct-to-multipath power ratio of the tag-to-robot link (median over packets):")
+        nlos = sim.get("nlos", {})
+        for tag, ratio in (sim.get("direct_to_multipath_db") or {}).items():
+            lines.append(f"  tag {tag}: {ratio:+.1f} dB{'  (NLOS)' if nlos.get(tag) else ''}")
     if info.setup:
         lines.append("Rig (rover.setup):")
         lines += [f"  {line}" for line in info.setup.strip().splitlines()]

@@ -131,6 +131,26 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_simulate(args: argparse.Namespace) -> int:
+    import shlex
+
+    from rover.datasets.scenario import load_scenario
+    from rover.datasets.simulate import simulate
+
+    overrides = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise BadInput(f"--set {item!r}: expected SECTION.KEY=VALUE")
+        overrides[key] = value
+    scenario = load_scenario(args.scenario, overrides)
+    report = simulate(scenario, args.seed, args.output, shlex.join(["rover", *sys.argv[1:]]), force=args.force)
+    per_tag = ", ".join(f"tag {t}: {n:,}" for t, n in report.packets_per_tag.items())
+    print(f"simulated {report.duration_s:.1f} s, {report.path_length_m:.2f} m of path; CSI packets {per_tag}")
+    print(f"wrote {report.output}")
+    return 0
+
+
 def _add_set(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline")
 
@@ -141,9 +161,15 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"rover {__version__}")
     ap.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     ap.add_argument("-q", "--quiet", action="store_true", help="only errors")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS, help="more log output")
+    common.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="only errors")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("run", help="run a pipeline (all of it, or one host's share)")
+    def command(name: str, help: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help, parents=[common])  # -v/-q work after the command too
+
+    p = command("run", help="run a pipeline (all of it, or one host's share)")
     p.add_argument("pipeline", nargs="?", help="pipeline file (default: the one shipped with rover)")
     p.add_argument("--host", help="run only the operators placed on this host")
     p.add_argument("--dataset", help="same as --set dataset=PATH")
@@ -151,18 +177,18 @@ def parser() -> argparse.ArgumentParser:
     _add_set(p)
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("check", help="validate pipeline and setup files; report every problem as FILE:LINE:COL")
+    p = command("check", help="validate pipeline and setup files; report every problem as FILE:LINE:COL")
     p.add_argument("files", nargs="+", metavar="FILE")
     _add_set(p)
     p.set_defaults(func=cmd_check)
 
-    p = sub.add_parser("graph", help="print the pipeline as Mermaid (default) or DOT")
+    p = command("graph", help="print the pipeline as Mermaid (default) or DOT")
     p.add_argument("pipeline", nargs="?", help="pipeline file (default: the one shipped with rover)")
     p.add_argument("--format", choices=("mermaid", "dot"), default="mermaid")
     _add_set(p)
     p.set_defaults(func=cmd_graph)
 
-    p = sub.add_parser("convert", help="ROS 1/ROS 2 bags or a recording folder to a dataset")
+    p = command("convert", help="ROS 1/ROS 2 bags or a recording folder to a dataset")
     p.add_argument("sources", nargs="+", metavar="SRC", help=".bag, ROS 2 bag folder, .db3, .mcap, recording folder")
     p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
     p.add_argument("--setup", help="setup.yaml (default: the recording folder's)")
@@ -174,7 +200,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("info", help="what a dataset holds, like `ros2 bag info`")
+    p = command("simulate", help="a dataset with ground truth from a scenario")
+    p.add_argument("--scenario", default="paper", help="a built-in scenario name or a scenario .yaml file")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scenario value")
+    p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
+    p.add_argument("--force", action="store_true", help="replace an existing output")
+    p.set_defaults(func=cmd_simulate)
+
+    p = command("info", help="what a dataset holds, like `ros2 bag info`")
     p.add_argument("path")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=cmd_info)

@@ -1,0 +1,196 @@
+"""Simulation scenarios as data: a YAML file per scenario (room, access point, tags, receiver,
+trajectory, IMU, odometry) that users copy and edit; `--set section.key=value` overrides."""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from rover import params as P
+from rover.errors import BadInput, Diagnostic, SpecError
+from rover.spec import did_you_mean
+from rover.yamlpos import Located, load, parse_scalar
+
+
+@dataclass(frozen=True)
+class Room:
+    size_m: tuple[float, float] = (9.0, 5.0)
+    wall_reflection: float = 0.5
+
+
+@dataclass(frozen=True)
+class AccessPoint:
+    position_m: tuple[float, float] = (4.5, 4.6)
+    channel: int = 165
+
+
+@dataclass(frozen=True)
+class SimTag:
+    id: int
+    channel: int
+    position_m: tuple[float, float]
+    nlos: bool = False
+
+
+@dataclass(frozen=True)
+class Receiver:
+    array: typing.Literal["triangle", "linear", "positions"] = "triangle"
+    spacing_wavelengths: float = 0.5
+    antenna_positions_m: list[tuple[float, float]] = field(default_factory=list)
+    range_m: float = 5.0
+    packet_rate_hz: float = 150.0
+    dwell_s: float = 0.05
+    hop_gap_s: float = 0.005
+    latency_ms: tuple[float, float] = (0.3, 0.5)
+    snr_db: tuple[float, float] = (20.0, 30.0)
+    phase_offsets_rad: list[float] = field(default_factory=lambda: [0.0, 0.9, -1.7])
+    calibration_error_deg: float = 3.0
+    sampling_offset_ns: tuple[float, float] = (0.0, 100.0)
+    nlos_attenuation_db: tuple[float, float] = (10.0, 15.0)
+    agc_peak: tuple[float, float] = (40.0, 90.0)
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    start_m: tuple[float, float] = (1.0, 0.755)
+    heading_deg: float = 0.0
+    waypoints_m: list[tuple[float, float]] = field(default_factory=list)
+    laps: int = 1
+    speed_m_s: float = 0.3
+    ramp_s: float = 1.0
+    turn_rate_deg_s: float = 45.0
+    stationary_s: float = 3.0
+
+
+@dataclass(frozen=True)
+class Imu:
+    rate_hz: float = 200.0
+    gyro_noise_deg_s_rthz: float = 0.005
+    gyro_bias_deg_s: float = 0.02
+    gyro_bias_walk_deg_s_rts: float = 0.0005
+    accel_noise_ug_rthz: float = 100.0
+    accel_bias_mg: float = 2.0
+    accel_bias_walk_mg_rts: float = 0.004
+
+
+@dataclass(frozen=True)
+class Odometry:
+    enabled: bool = True
+    rate_hz: float = 20.0
+    scale_error: float = 0.02
+    heading_drift_deg_s: float = 0.1
+    speed_noise_m_s: float = 0.005
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    text: str
+    room: Room
+    access_point: AccessPoint
+    tags: list[SimTag]
+    receiver: Receiver
+    trajectory: Trajectory
+    imu: Imu
+    odometry: Odometry
+
+
+SECTIONS = {"room": Room, "access_point": AccessPoint, "receiver": Receiver, "trajectory": Trajectory,
+            "imu": Imu, "odometry": Odometry}
+
+
+def builtin_scenarios() -> list[str]:
+    folder = resources.files("rover.datasets").joinpath("scenarios")
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+
+
+def _section(doc: Located, data: Any, path: tuple, cls: type, problems: list[Diagnostic]) -> Any:
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        problems.append(doc.diag(path, f"{path[-1]} must be a mapping"))
+        return cls() if all(P.has_default(f) for f in dataclasses.fields(cls)) else None
+    fields = P.fields(cls)
+    hints = P.resolved_types(cls)
+    values = {}
+    for key, value in data.items():
+        if key not in fields:
+            problems.append(doc.diag(path + (key,), f"unknown key {key!r} in {'.'.join(map(str, path))}"
+                                     f"{did_you_mean(key, fields)}", key=True))
+            continue
+        try:
+            values[key] = P.coerce(value, hints[key])
+        except P.ParamTypeError as exc:
+            problems.append(doc.diag(path + (key,), f"{'.'.join(map(str, path + (key,)))}: {exc}"))
+    missing = [k for k, f in fields.items() if k not in values and not P.has_default(f) and k not in data]
+    for key in missing:
+        problems.append(doc.diag(path, f"{'.'.join(map(str, path))} needs {key}"))
+    if missing or len(values) != len(data):
+        return None
+    return cls(**values)
+
+
+def _override(data: dict, key: str, value: Any) -> None:
+    parts = key.split(".")
+    node = data
+    for part in parts[:-1]:
+        if part.isdigit() and isinstance(node, list) and int(part) < len(node):
+            node = node[int(part)]
+        elif isinstance(node, dict):
+            node = node.setdefault(part, {})
+        else:
+            raise BadInput(f"--set {key}: {part!r} is not a section of the scenario")
+    last = parts[-1]
+    if isinstance(node, list) and last.isdigit() and int(last) < len(node):
+        node[int(last)] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise BadInput(f"--set {key}: cannot set {last!r} there")
+
+
+def load_scenario(name_or_path: str, overrides: dict[str, str] | None = None) -> Scenario:
+    """A built-in scenario by name, or a scenario file; raise SpecError/BadInput on problems."""
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
+        file = str(path)
+    else:
+        names = builtin_scenarios()
+        if name_or_path not in names:
+            raise BadInput(f"unknown scenario {name_or_path!r}{did_you_mean(name_or_path, names)} "
+                           f"(built in: {', '.join(names)}; or give a .yaml file)")
+        file = f"{name_or_path}.yaml"
+        text = resources.files("rover.datasets").joinpath("scenarios", file).read_text(encoding="utf-8")
+    doc = load(text, file)
+    if not isinstance(doc.data, dict):
+        raise SpecError([doc.diag((), "a scenario is a mapping of sections")])
+    for key, value in (overrides or {}).items():
+        _override(doc.data, key, parse_scalar(value))
+    problems: list[Diagnostic] = []
+    for key in doc.data:
+        if key not in (*SECTIONS, "tags"):
+            problems.append(doc.diag((key,), f"unknown section {key!r}{did_you_mean(key, [*SECTIONS, 'tags'])}",
+                                     key=True))
+    sections = {name: _section(doc, doc.data.get(name), (name,), cls, problems) for name, cls in SECTIONS.items()}
+    tags = []
+    raw_tags = doc.data.get("tags") or []
+    if not isinstance(raw_tags, list) or not raw_tags:
+        problems.append(doc.diag(("tags",), "tags must be a non-empty list of {id, channel, position_m}"))
+        raw_tags = []
+    for i, raw in enumerate(raw_tags):
+        tag = _section(doc, raw, ("tags", i), SimTag, problems)
+        if tag is not None:
+            tags.append(tag)
+    if sections["trajectory"] is not None and not sections["trajectory"].waypoints_m:
+        problems.append(doc.diag(("trajectory",), "trajectory needs waypoints_m"))
+    if problems:
+        raise SpecError(problems)
+    return Scenario(Path(file).stem, text, tags=tags, **sections)

@@ -1,0 +1,233 @@
+"""`rover simulate`: a dataset with ground truth from a scenario: real CSI Tool records from the
+two-hop multipath channel, a swept receiver that hears tags only in range, a noisy IMU and wheel
+odometry, all deterministic for a seed."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+import rover
+from rover.datasets.bagfile import BagWriter
+from rover.datasets.imu_model import imu_samples, odometry_samples
+from rover.datasets.motion import Motion
+from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
+from rover.datasets.scenario import Scenario
+from rover.drivers.intel5300 import RecordHeader, encode_record
+from rover.errors import BadInput
+from rover.messages import header, make
+from rover.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
+
+T0_NS = 1_700_000_000_000_000_000
+"""Simulated clock origin (2023-11-14), so stamps look like a real recording's."""
+TRUTH_RATE_HZ = 100.0
+NOISE_HEADER_DB = -127
+NOISE_FLOOR_DB = -92
+RATE_N_FLAGS = 0x4101
+PERMUTATIONS = (0b100100, 0b011000, 0b001001, 0b010010, 0b000110, 0b100001)
+"""antenna_sel values of the six permutations; the NIC usually reports the identity."""
+
+
+@dataclass
+class SimReport:
+    output: Path
+    duration_s: float
+    path_length_m: float
+    counts: Counter = field(default_factory=Counter)
+    packets_per_tag: dict[int, int] = field(default_factory=dict)
+    direct_to_multipath_db: dict[int, float] = field(default_factory=dict)
+
+
+def antenna_positions(scenario: Scenario) -> np.ndarray:
+    rx = scenario.receiver
+    if rx.array == "positions":
+        if len(rx.antenna_positions_m) < 2:
+            raise BadInput("receiver.array: positions needs receiver.antenna_positions_m")
+        return np.array(rx.antenna_positions_m, dtype=np.float64)
+    wavelength = SPEED_OF_LIGHT_M_S / max(channel_freq_hz(t.channel) for t in scenario.tags)
+    d = rx.spacing_wavelengths * wavelength
+    if rx.array == "linear":
+        return np.array([[0.0, 0.0], [d, 0.0], [2 * d, 0.0]])
+    return np.array([[0.0, 0.0], [d, 0.0], [d / 2, -d * math.sqrt(3) / 2]])
+
+
+def _windows(scenario: Scenario, duration_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Receiving windows of the sweep: (start, end, tag index), visiting the tags' channels in turn."""
+    rx = scenario.receiver
+    order = sorted(range(len(scenario.tags)), key=lambda i: scenario.tags[i].channel)
+    count = int(duration_s / rx.dwell_s) + 1
+    starts = np.arange(count) * rx.dwell_s
+    tags = np.array(order)[np.arange(count) % len(order)]
+    return starts + rx.hop_gap_s, starts + rx.dwell_s, tags
+
+
+def _setup_yaml(scenario: Scenario, antennas: np.ndarray, offsets: np.ndarray) -> str:
+    data = {
+        "receiver": {"antenna_positions_m": [[round(float(v), 10) for v in p] for p in antennas],
+                     "phase_offsets_rad": [round(float(v), 6) for v in offsets], "interface": "wlan0"},
+        "excitation": {"channel": scenario.access_point.channel},
+        "tags": [{"id": t.id, "channel": t.channel} for t in scenario.tags],
+        "topics": {"csi": "/csi", "imu": "/imu/data", "odom": "/odom" if scenario.odometry.enabled else None},
+        "imu": {"frame_id": "imu_link", "rate_hz": scenario.imu.rate_hz},
+        "sweep": {"dwell_s": scenario.receiver.dwell_s},
+    }
+    return "# Rig description written by rover simulate (calibration includes its simulated error)\n" + \
+        yaml.safe_dump(data, sort_keys=False)
+
+
+class _World:
+    """The room frame to the world frame: origin at the robot's first pose, x along its heading."""
+
+    def __init__(self, start: tuple[float, float], heading_rad: float):
+        self.start = np.array(start, dtype=np.float64)
+        self.heading = heading_rad
+        c, s = math.cos(heading_rad), math.sin(heading_rad)
+        self.rotation = np.array([[c, s], [-s, c]])
+
+    def point(self, xy: np.ndarray) -> np.ndarray:
+        return (np.asarray(xy) - self.start) @ self.rotation.T
+
+    def yaw(self, yaw: np.ndarray) -> np.ndarray:
+        return np.angle(np.exp(1j * (yaw - self.heading)))
+
+
+def simulate(scenario: Scenario, seed: int, output: str | Path, command_line: str = "",
+             force: bool = False) -> SimReport:
+    output = Path(output)
+    if output.exists() and not force:
+        raise BadInput(f"{output}: exists (use --force to replace it)")
+    rng = np.random.default_rng(seed)
+    rx = scenario.receiver
+    motion = Motion(scenario.trajectory)
+    duration = motion.duration_s
+    world = _World(scenario.trajectory.start_m, math.radians(scenario.trajectory.heading_deg))
+    antennas = antenna_positions(scenario)
+    if len(rx.phase_offsets_rad) != len(antennas):
+        raise BadInput(f"receiver.phase_offsets_rad has {len(rx.phase_offsets_rad)} values for {len(antennas)} antennas")
+    true_offsets = np.array(rx.phase_offsets_rad, dtype=np.float64)
+    calibration = true_offsets + np.radians(rng.normal(0, rx.calibration_error_deg, len(antennas))) * \
+        (np.arange(len(antennas)) > 0)
+    report = SimReport(output, duration, motion.path_length_m)
+    rows: list[tuple[int, int, str, object]] = []
+
+    def add(stamp: int, topic: str, msg: object) -> None:
+        rows.append((stamp, len(rows), topic, msg))
+        report.counts[topic] += 1
+
+    starts, ends, window_tags = _windows(scenario, duration)
+    n_packets = rng.poisson(rx.packet_rate_hz * (ends - starts))
+    owner = np.repeat(window_tags, n_packets)
+    true_t = np.repeat(starts, n_packets) + rng.uniform(0, 1, n_packets.sum()) * np.repeat(ends - starts, n_packets)
+    order = np.argsort(true_t, kind="stable")
+    true_t, owner = true_t[order], owner[order]
+    state = motion.state(true_t)
+    ap = np.array(scenario.access_point.position_m, dtype=np.float64)
+    room = tuple(scenario.room.size_m)
+    heard = np.zeros(len(true_t), dtype=bool)
+    csi = np.zeros((len(true_t), 30, len(antennas)), dtype=np.complex128)
+    for i, tag in enumerate(scenario.tags):
+        mine = owner == i
+        position = np.array(tag.position_m, dtype=np.float64)
+        in_range = mine & (np.linalg.norm(state.xy - position, axis=1) <= rx.range_m)
+        heard |= in_range
+        if not in_range.any():
+            report.packets_per_tag[tag.id] = 0
+            continue
+        attenuation = rng.uniform(*rx.nlos_attenuation_db) if tag.nlos else 0.0
+        clean, ratio = backscatter_csi(ap, position, state.xy[in_range], state.yaw[in_range], antennas,
+                                       scenario.access_point.channel, tag.channel, room,
+                                       scenario.room.wall_reflection, attenuation)
+        csi[in_range] = clean
+        report.packets_per_tag[tag.id] = int(in_range.sum())
+        report.direct_to_multipath_db[tag.id] = round(float(np.median(ratio)), 2)
+    keep = np.flatnonzero(heard)
+    n = len(keep)
+    imp = Impairments(rng.uniform(*rx.sampling_offset_ns, n) * 1e-9, rng.uniform(0, 2 * np.pi, n),
+                      rng.uniform(*rx.snr_db, n), rng.uniform(*rx.agc_peak, n), true_offsets)
+    quantized = impair(csi[keep], imp, rng)
+    latency_s = (rx.latency_ms[0] + rng.exponential(rx.latency_ms[1], n)) * 1e-3
+    stamps = T0_NS + np.round((true_t[keep] + latency_s) * 1e9).astype(np.int64)
+    agc = rng.integers(30, 46, n)
+    rss_dbm = NOISE_FLOOR_DB + imp.snr_db - 10 * math.log10(len(antennas))
+    rssi = np.clip(np.rint(rss_dbm + 44 + agc), 1, 255).astype(int)
+    selection = np.where(rng.uniform(size=n) < 0.8, PERMUTATIONS[0], rng.choice(PERMUTATIONS, n))
+    clock_offset_us = int(rng.integers(0, 2**32))
+    for k, index in enumerate(keep):
+        tag = scenario.tags[owner[index]]
+        head = RecordHeader((clock_offset_us + int(true_t[index] * 1e6)) % 2**32, k % 2**16,
+                            (int(rssi[k]),) * 3, NOISE_HEADER_DB, int(agc[k]), int(selection[k]), RATE_N_FLAGS)
+        if len(antennas) != 3:
+            raise BadInput("the Intel 5300 has three receive chains: the simulated array needs 3 antennas")
+        bfee = encode_record(head, quantized[k][:, :, None])
+        stamp = int(stamps[k])
+        add(stamp, "/csi", make("rover_msgs/msg/CsiFrame", header=header(stamp, "base_link"), channel=tag.channel,
+                                bfee=np.frombuffer(bfee, dtype=np.uint8)))
+        angle = true_aoa(np.array(tag.position_m), state.xy[index:index + 1], state.yaw[index:index + 1])[0]
+        add(stamp, "/groundtruth/aoa", make("rover_msgs/msg/Aoa", header=header(stamp, "base_link"), tag_id=tag.id,
+                                            channel=tag.channel, angle_rad=float(angle), packets=1))
+
+    imu_t = np.arange(0.0, duration, 1.0 / scenario.imu.rate_hz)
+    imu_state = motion.state(imu_t)
+    imu = imu_samples(imu_state, scenario.imu, rng)
+    vec = lambda v: make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
+    no_orientation = np.zeros(9)
+    no_orientation[0] = -1.0
+    for k, t in enumerate(imu_t):
+        stamp = T0_NS + int(round(t * 1e9))
+        add(stamp, "/imu/data", make("sensor_msgs/msg/Imu", header=header(stamp, "imu_link"),
+                                     orientation_covariance=no_orientation, angular_velocity=vec(imu.gyro[k]),
+                                     linear_acceleration=vec(imu.accel[k])))
+    if scenario.odometry.enabled:
+        odom_t = np.arange(0.0, duration, 1.0 / scenario.odometry.rate_hz)
+        odom_state = motion.state(odom_t)
+        odom = odometry_samples(odom_state, odom_t, scenario.odometry, rng)
+        for k, t in enumerate(odom_t):
+            stamp = T0_NS + int(round(t * 1e9))
+            msg = make("nav_msgs/msg/Odometry", header=header(stamp, "odom"), child_frame_id="base_link")
+            msg.pose.pose.position.x, msg.pose.pose.position.y = float(odom.xy[k, 0]), float(odom.xy[k, 1])
+            msg.pose.pose.orientation.z = math.sin(odom.yaw[k] / 2)
+            msg.pose.pose.orientation.w = math.cos(odom.yaw[k] / 2)
+            msg.twist.twist.linear.x = float(odom.speed[k])
+            msg.twist.twist.angular.z = float(odom.yaw_rate[k])
+            add(stamp, "/odom", msg)
+
+    truth_t = np.arange(0.0, duration, 1.0 / TRUTH_RATE_HZ)
+    truth_state = motion.state(truth_t)
+    xy, yaw = world.point(truth_state.xy), world.yaw(truth_state.yaw)
+    for k, t in enumerate(truth_t):
+        stamp = T0_NS + int(round(t * 1e9))
+        pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp, "world"))
+        pose.pose.position.x, pose.pose.position.y = float(xy[k, 0]), float(xy[k, 1])
+        pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw[k] / 2), math.cos(yaw[k] / 2)
+        add(stamp, "/groundtruth/pose", pose)
+    tag_world = {t.id: world.point(np.array(t.position_m)) for t in scenario.tags}
+    add(T0_NS, "/groundtruth/tags", make("rover_msgs/msg/TagArray", header=header(T0_NS, "world"), tags=[
+        make("rover_msgs/msg/Tag", id=t.id, channel=t.channel, observable=True,
+             position=make("geometry_msgs/msg/Point", x=float(tag_world[t.id][0]), y=float(tag_world[t.id][1])))
+        for t in scenario.tags]))
+
+    rows.sort(key=lambda r: (r[0], r[1]))
+    tags_csv = "id,channel,x,y,z,nlos\n" + "".join(
+        f"{t.id},{t.channel},{tag_world[t.id][0]:.4f},{tag_world[t.id][1]:.4f},0.0000,{int(t.nlos)}\n"
+        for t in scenario.tags)
+    simulation = {"scenario": scenario.name, "seed": seed, "duration_s": round(duration, 3),
+                  "path_length_m": round(motion.path_length_m, 3),
+                  "direct_to_multipath_db": report.direct_to_multipath_db,
+                  "nlos": {t.id: t.nlos for t in scenario.tags},
+                  "true_phase_offsets_rad": [float(v) for v in true_offsets]}
+    metadata = {
+        "rover.setup": {"yaml": _setup_yaml(scenario, antennas, calibration)},
+        "rover.provenance": {"tool": f"rover {rover.__version__}", "command": command_line,
+                             "sources": f"scenario {scenario.name}, seed {seed}"},
+        "rover.simulation": {"yaml": yaml.safe_dump(simulation, sort_keys=False), "scenario": scenario.text},
+        "rover.truth": {"tags_csv": tags_csv},
+    }
+    with BagWriter(output, metadata=metadata) as bag:
+        for stamp, _order, topic, msg in rows:
+            bag.write(topic, msg, stamp)
+    return report
