@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import struct
 import sys
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -26,7 +27,7 @@ import rover
 from rover.datasets.bagfile import BagWriter
 from rover.datasets.truth import read_tags_csv, read_tum
 from rover.errors import BadInput, SpecError
-from rover.messages import header, make
+from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
 from rover.rig import Rig, load_rig
 
 log = logging.getLogger("rover.convert")
@@ -140,61 +141,74 @@ def _finite(values: Sequence[float]) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+_F64x3 = struct.Struct("<3d")
+
+
+def _imu_vectors_at(payload: bytes) -> tuple[int, int]:
+    """Byte offsets of angular_velocity and linear_acceleration in a little-endian CDR Imu."""
+    (length,) = struct.unpack_from("<I", payload, 4 + 8)
+    orientation = (12 + length + 7) & ~7
+    return 4 + orientation + 104, 4 + orientation + 200
+
+
 class _Imu:
-    """IMU checks: NaN and duplicate samples dropped, g units detected on the first second."""
+    """IMU checks on CDR bytes: NaN and duplicate samples dropped, g units detected on the first second."""
 
     def __init__(self, report: Report):
         self.report = report
         self.last_stamp: int | None = None
         self.scale: float | None = None
-        self.pending: list[tuple[int, Any]] = []
+        self.pending: list[tuple[int, bytes, tuple[float, ...]]] = []
 
-    def convert(self, stamp: int, msg: Any) -> list[tuple[int, Any]]:
-        a, w = msg.linear_acceleration, msg.angular_velocity
-        if not _finite((a.x, a.y, a.z, w.x, w.y, w.z)):
+    def convert(self, stamp: int, payload: bytes) -> list[tuple[int, Raw]]:
+        gyro_at, accel_at = _imu_vectors_at(payload)
+        accel = _F64x3.unpack_from(payload, accel_at)
+        if not _finite(accel + _F64x3.unpack_from(payload, gyro_at)):
             self.report.dropped["imu: NaN or infinite sample"] += 1
             return []
         if stamp == self.last_stamp:
             self.report.dropped["imu: duplicate stamp"] += 1
             return []
         self.last_stamp = stamp
-        out = make("sensor_msgs/msg/Imu", header=header(stamp, msg.header.frame_id),
-                   orientation=make("geometry_msgs/msg/Quaternion", x=msg.orientation.x, y=msg.orientation.y,
-                                    z=msg.orientation.z, w=msg.orientation.w),
-                   orientation_covariance=np.asarray(msg.orientation_covariance, dtype=np.float64),
-                   angular_velocity=make("geometry_msgs/msg/Vector3", x=w.x, y=w.y, z=w.z),
-                   angular_velocity_covariance=np.asarray(msg.angular_velocity_covariance, dtype=np.float64),
-                   linear_acceleration=make("geometry_msgs/msg/Vector3", x=a.x, y=a.y, z=a.z),
-                   linear_acceleration_covariance=np.asarray(msg.linear_acceleration_covariance, dtype=np.float64))
         if self.scale is None:
-            self.pending.append((stamp, out))
+            self.pending.append((stamp, payload, accel))
             if stamp - self.pending[0][0] < 1_000_000_000:
                 return []
-            self._decide()
-            ready, self.pending = self.pending, []
-            return [(s, self._scaled(m)) for s, m in ready]
-        return [(stamp, self._scaled(out))]
+            return self.flush()
+        return [(stamp, self._scaled(payload, accel))]
 
     def _decide(self) -> None:
-        norms = [math.sqrt(m.linear_acceleration.x ** 2 + m.linear_acceleration.y ** 2 + m.linear_acceleration.z ** 2)
-                 for _, m in self.pending]
+        norms = [math.sqrt(sum(v * v for v in accel)) for _, _, accel in self.pending]
         in_g = bool(norms) and G_UNITS_BAND[0] < float(np.median(norms)) < G_UNITS_BAND[1]
         self.scale = STANDARD_GRAVITY_M_S2 if in_g else 1.0
         if in_g:
             self.report.imu_in_g = True
             log.warning("the IMU reports acceleration in g (|a| = %.2f at rest): converted to m/s^2", np.median(norms))
 
-    def _scaled(self, msg: Any) -> Any:
+    def _scaled(self, payload: bytes, accel: tuple[float, ...]) -> Raw:
         if self.scale != 1.0:
-            a = msg.linear_acceleration
-            a.x, a.y, a.z = a.x * self.scale, a.y * self.scale, a.z * self.scale
-        return msg
+            data = bytearray(payload)
+            _F64x3.pack_into(data, _imu_vectors_at(payload)[1], *(v * self.scale for v in accel))
+            payload = bytes(data)
+        return Raw(ROLES["imu"], payload)
 
-    def flush(self) -> list[tuple[int, Any]]:
+    def flush(self) -> list[tuple[int, Raw]]:
         if self.scale is None and self.pending:
             self._decide()
         ready, self.pending = self.pending, []
-        return [(s, self._scaled(m)) for s, m in ready]
+        return [(stamp, self._scaled(payload, accel)) for stamp, payload, accel in ready]
+
+
+def _imu(msg: Any, stamp: int) -> Any:
+    a, w = msg.linear_acceleration, msg.angular_velocity
+    return make("sensor_msgs/msg/Imu", header=header(stamp, msg.header.frame_id),
+                orientation=make("geometry_msgs/msg/Quaternion", x=msg.orientation.x, y=msg.orientation.y,
+                                 z=msg.orientation.z, w=msg.orientation.w),
+                orientation_covariance=np.asarray(msg.orientation_covariance, dtype=np.float64),
+                angular_velocity=make("geometry_msgs/msg/Vector3", x=w.x, y=w.y, z=w.z),
+                angular_velocity_covariance=np.asarray(msg.angular_velocity_covariance, dtype=np.float64),
+                linear_acceleration=make("geometry_msgs/msg/Vector3", x=a.x, y=a.y, z=a.z),
+                linear_acceleration_covariance=np.asarray(msg.linear_acceleration_covariance, dtype=np.float64))
 
 
 def _csi(msg: Any, stamp: int) -> Any:
@@ -214,6 +228,25 @@ def _odom(msg: Any, stamp: int) -> Any:
     t_out.angular.x, t_out.angular.y, t_out.angular.z = t_in.angular.x, t_in.angular.y, t_in.angular.z
     out.twist.covariance = np.asarray(msg.twist.covariance, dtype=np.float64)
     return out
+
+
+_TO_ROVER = {"csi": _csi, "imu": _imu, "odom": _odom}
+
+
+def _as_rover_cdr(reader: AnyReader, conn: Any, raw: bytes, role: str, same_layout: dict[int, bool]) -> bytes | None:
+    """The message as little-endian CDR of Rover's type. A ROS 2 connection whose first message
+    re-serializes to the same bytes is passed through as is; anything else is decoded with the
+    bag's own definitions and re-encoded."""
+    try:
+        if same_layout.get(conn.id):
+            return raw
+        msg = reader.deserialize(raw, conn.msgtype)
+        ours = serialize(_TO_ROVER[role](msg, _stamp(msg, 0)))
+    except Exception:  # noqa: BLE001 - a message its own definition cannot decode is dropped and counted
+        return None
+    if conn.id not in same_layout:
+        same_layout[conn.id] = bool(reader.is2) and ours == bytes(raw) and bytes(raw[:2]) == b"\x00\x01"
+    return ours
 
 
 def _dataset_setup(rig: Rig) -> str:
@@ -265,27 +298,22 @@ def convert(paths: Sequence[str | Path], output: str | Path, *, setup: str | Pat
         imu = _Imu(report)
         rows: list[tuple[int, int, str, Any]] = []
         last: dict[str, int] = {}
+        same_layout: dict[int, bool] = {}
         for n, (conn, log_ns, raw) in enumerate(reader.messages(connections=connections)):
             if progress is not None and n % 2000 == 0:
                 progress(n, total)
             role = role_of[conn.topic]
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except Exception:  # noqa: BLE001 - a message the bag's own definition cannot decode is dropped, counted
+            payload = _as_rover_cdr(reader, conn, raw, role, same_layout)
+            if payload is None:
                 report.dropped[f"{role}: undecodable"] += 1
                 continue
-            stamp = _stamp(msg, log_ns)
+            stamp = cdr_stamp_ns(payload)
             if (lo is not None and stamp < lo) or (hi is not None and stamp > hi):
                 continue
             if stamp < last.get(role, stamp):
                 report.resorted[role] += 1
             last[role] = max(stamp, last.get(role, stamp))
-            if role == "imu":
-                converted = imu.convert(stamp, msg)
-            elif role == "csi":
-                converted = [(stamp, _csi(msg, stamp))]
-            else:
-                converted = [(stamp, _odom(msg, stamp))]
+            converted = imu.convert(stamp, payload) if role == "imu" else [(stamp, Raw(ROLES[role], payload))]
             rows += [(s, len(rows) + k, OUTPUT_TOPICS[role], m) for k, (s, m) in enumerate(converted)]
         rows += [(s, len(rows) + k, OUTPUT_TOPICS["imu"], m) for k, (s, m) in enumerate(imu.flush())]
     finally:
