@@ -338,6 +338,9 @@ def convert(paths: Sequence[str | Path], output: str | Path, *, setup: str | Pat
 
 
 def _truth_messages(truth: str | Path | None, tags: str | Path | None, first_ns: int):
+    if truth and Path(truth).suffix == ".mcap":
+        yield from _truth_from_dataset(Path(truth), with_tags=not tags)
+        truth = None
     if tags:
         array = make("rover_msgs/msg/TagArray", header=header(first_ns, "world"), tags=[
             make("rover_msgs/msg/Tag", id=t.id, channel=t.channel, observable=True,
@@ -352,6 +355,27 @@ def _truth_messages(truth: str | Path | None, tags: str | Path | None, first_ns:
             p.x, p.y, p.z = (float(v) for v in xyz)
             o.x, o.y, o.z, o.w = (float(v) for v in q)
             yield stamp, pose
+
+
+def _truth_from_dataset(path: Path, with_tags: bool):
+    """The ground truth of another dataset (e.g. the simulated run a recording was made from)."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    from rover.messages import deserialize
+
+    topics = {TRUTH_POSE: "geometry_msgs/msg/PoseStamped"}
+    if with_tags:
+        topics[TRUTH_TAGS] = "rover_msgs/msg/TagArray"
+    try:
+        with path.open("rb") as f:
+            found = [(m.log_time, deserialize(m.data, topics[c.topic]))
+                     for _s, c, m in make_reader(f).iter_messages(topics=list(topics))]
+    except (McapError, OSError, ValueError) as exc:
+        raise BadInput(f"{path}: not a readable dataset: {exc}") from None
+    if not found:
+        raise BadInput(f"{path}: has no {TRUTH_POSE} to use as ground truth")
+    yield from found
 
 
 def terminal_progress() -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:

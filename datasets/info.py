@@ -54,6 +54,12 @@ class DatasetInfo:
 def dataset_info(path: str | Path, csi_topic: str = "/csi") -> DatasetInfo:
     """Summarize a dataset; BadInput when it is not a readable MCAP file."""
     path = Path(path)
+    if path.is_dir():
+        files = sorted(path.glob("*.mcap"))
+        if len(files) != 1:
+            raise BadInput(f"{path}: a bag folder for `rover info` holds one .mcap file (found {len(files)}); "
+                           "convert other bags with `rover convert` first")
+        path = files[0]
     if not path.is_file():
         raise BadInput(f"{path}: no such dataset file")
     try:

@@ -34,6 +34,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
         values["dataset"] = args.dataset
     if getattr(args, "output", None) is not None:
         values["output"] = args.output
+    if getattr(args, "speed", None) is not None:
+        values["speed"] = parse_scalar(args.speed)
     return values
 
 
@@ -174,6 +176,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--host", help="run only the operators placed on this host")
     p.add_argument("--dataset", help="same as --set dataset=PATH")
     p.add_argument("--output", help="same as --set output=DIR")
+    p.add_argument("--speed", help="same as --set speed=X: replay at X times real time (max: as fast as possible)")
     _add_set(p)
     p.set_defaults(func=cmd_run)
 
@@ -195,7 +198,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--topic", action="append", metavar="ROLE=/NAME", help="source topic of csi, imu or odom")
     p.add_argument("--start", type=float, help="seconds from the start (or absolute seconds)")
     p.add_argument("--end", type=float, help="seconds from the start (or absolute seconds)")
-    p.add_argument("--truth", help="ground-truth trajectory (TUM)")
+    p.add_argument("--truth", help="ground-truth trajectory: a TUM file, or a dataset with /groundtruth/pose")
     p.add_argument("--tags", help="ground-truth tags (CSV: id,channel,x,y,z,nlos)")
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_convert)

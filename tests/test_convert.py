@@ -146,3 +146,14 @@ def test_an_interrupted_conversion_leaves_nothing_and_outputs_are_kept(tmp_path)
     with pytest.raises(BadInput, match="exists"):
         convert([bag], out, setup=setup)
     convert([bag], out, setup=setup, force=True)
+
+
+def test_truth_from_another_dataset_and_info_on_a_bag_folder(tmp_path):
+    source = reference_data() / "recording_sample"
+    first = tmp_path / "first.mcap"
+    convert([source], first)
+    second = tmp_path / "second.mcap"
+    report = convert([source / "bag"], second, setup=source / "setup.yaml", truth=first)
+    assert report.written["/groundtruth/pose"] == 11076 and report.written["/groundtruth/tags"] == 1
+    info = json.loads(run_rover("info", "--json", str(source / "bag")).stdout)
+    assert info["message_count"] == 34947

@@ -69,3 +69,12 @@ def test_bad_datasets_are_bad_input(tmp_path):
         DatasetReplay(ReplayParams(path=str(wrong)))
     with pytest.raises(BadInput, match="speed must be"):
         DatasetReplay(ReplayParams(path=str(wrong), speed=0.0))
+
+
+def test_speed_from_the_command_line(tmp_path):
+    from conftest import run_rover
+
+    path = write_imu_dataset(tmp_path / "d.mcap", 400, odom_every=0)
+    proc = run_rover("run", "--dataset", str(path), "--speed", "20", "--output", str(tmp_path / "o"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert run_rover("run", "--dataset", str(path), "--speed", "fast", cwd=tmp_path).returncode == 2
