@@ -109,29 +109,19 @@ def builtin_scenarios() -> list[str]:
 
 
 def _section(doc: Located, data: Any, path: tuple, cls: type, problems: list[Diagnostic]) -> Any:
+    where = ".".join(map(str, path))
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        problems.append(doc.diag(path, f"{path[-1]} must be a mapping"))
-        return cls() if all(P.has_default(f) for f in dataclasses.fields(cls)) else None
-    fields = P.fields(cls)
-    hints = P.resolved_types(cls)
-    values = {}
-    for key, value in data.items():
-        if key not in fields:
-            problems.append(doc.diag(path + (key,), f"unknown key {key!r} in {'.'.join(map(str, path))}"
-                                     f"{did_you_mean(key, fields)}", key=True))
-            continue
-        try:
-            values[key] = P.coerce(value, hints[key])
-        except P.ParamTypeError as exc:
-            problems.append(doc.diag(path + (key,), f"{'.'.join(map(str, path + (key,)))}: {exc}"))
-    missing = [k for k, f in fields.items() if k not in values and not P.has_default(f) and k not in data]
-    for key in missing:
-        problems.append(doc.diag(path, f"{'.'.join(map(str, path))} needs {key}"))
-    if missing or len(values) != len(data):
+        problems.append(doc.diag(path, f"{where} must be a mapping"))
         return None
-    return cls(**values)
+    wording = P.Wording(unknown=lambda key: f"unknown key {key!r} in {where}",
+                        ill_typed=lambda key: f"{where}.{key}", missing=lambda key, _label: f"{where} needs {key}")
+
+    def report(sub: tuple, message: str, at_key: bool) -> None:
+        problems.append(doc.diag(path + sub, message, key=at_key and bool(sub)))
+
+    return P.bind(cls, data, wording, report)
 
 
 def _override(data: dict, key: str, value: Any) -> None:

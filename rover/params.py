@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Literal, Union, get_args, get_origin
 
 
@@ -84,3 +86,54 @@ def resolved_types(params_cls: type) -> dict[str, Any]:
 
 def has_default(field: dataclasses.Field) -> bool:
     return field.default is not dataclasses.MISSING or field.default_factory is not dataclasses.MISSING
+
+
+@dataclass(frozen=True)
+class Wording:
+    """How `bind` words its problems for one kind of mapping (operator params, a scenario section)."""
+
+    unknown: Callable[[str], str]
+    """the message for an unknown key (a did-you-mean hint is appended)"""
+    ill_typed: Callable[[str], str]
+    """the prefix of a type error"""
+    missing: Callable[[str, str], str]
+    """the message for a required key, given the key and its type label"""
+    known_list: bool = False
+    """append the list of known keys to the unknown-key message"""
+
+
+Report = Callable[[tuple, str, bool], None]
+"""report(path below the mapping, message, at_key)"""
+
+
+def bind(cls: type, values: dict[str, Any], wording: Wording, report: Report) -> Any | None:
+    """Coerce a mapping into the dataclass `cls`, reporting every unknown key, ill-typed value and
+    missing field; None when there was any problem."""
+    from rover.spec import did_you_mean
+
+    known = fields(cls)
+    hints = resolved_types(cls)
+    out: dict[str, Any] = {}
+    ok = True
+    for key, value in values.items():
+        if key not in known:
+            listing = f" (params: {', '.join(known) or 'none'})" if wording.known_list else ""
+            report((key,), f"{wording.unknown(key)}{did_you_mean(key, known)}{listing}", True)
+            ok = False
+            continue
+        try:
+            out[key] = coerce(value, hints[key])
+        except ParamTypeError as exc:
+            report((key,), f"{wording.ill_typed(key)}: {exc}", False)
+            ok = False
+    for key, field in known.items():
+        if key not in values and not has_default(field):
+            report((), wording.missing(key, type_label(hints[key])), True)
+            ok = False
+    if not ok:
+        return None
+    try:
+        return cls(**out)
+    except (TypeError, ValueError) as exc:
+        report((), str(exc), False)
+        return None

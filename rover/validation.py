@@ -68,31 +68,16 @@ class Pipeline:
 
 
 def _params(doc, spec: OperatorSpec, cls: type[Operator], problems: list[Diagnostic]) -> Any:
-    fields = P.fields(cls.Params)
-    hints = P.resolved_types(cls.Params)
-    values: dict[str, Any] = {}
     base = ("operators", spec.name, "params")
-    for key, value in spec.params.items():
-        if key not in fields:
-            known = ", ".join(fields) or "none"
-            problems.append(doc.diag(base + (key,), f"operator {spec.name!r} ({spec.uses}) has no param {key!r}"
-                                     f"{did_you_mean(key, fields)} (params: {known})", key=True))
-            continue
-        try:
-            values[key] = P.coerce(value, hints[key])
-        except P.ParamTypeError as exc:
-            problems.append(doc.diag(base + (key,), f"param {key!r} of operator {spec.name!r}: {exc}"))
-    missing = [k for k, f in fields.items() if k not in spec.params and not P.has_default(f)]
-    for key in missing:
-        problems.append(doc.diag(("operators", spec.name), f"operator {spec.name!r} ({spec.uses}) needs param "
-                                 f"{key!r} ({P.type_label(hints[key])})", key=True))
-    if missing or len(values) != len(spec.params):
-        return None
-    try:
-        return cls.Params(**values)
-    except (TypeError, ValueError) as exc:
-        problems.append(doc.diag(base, f"params of operator {spec.name!r}: {exc}"))
-        return None
+    wording = P.Wording(unknown=lambda key: f"operator {spec.name!r} ({spec.uses}) has no param {key!r}",
+                        ill_typed=lambda key: f"param {key!r} of operator {spec.name!r}",
+                        missing=lambda key, label: f"operator {spec.name!r} ({spec.uses}) needs param {key!r} ({label})",
+                        known_list=True)
+
+    def report(path: tuple, message: str, at_key: bool) -> None:
+        problems.append(doc.diag(base + path if path else ("operators", spec.name), message, key=at_key))
+
+    return P.bind(cls.Params, spec.params, wording, report)
 
 
 def _check_ports(doc, nodes: dict[str, Node], specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
