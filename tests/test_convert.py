@@ -157,3 +157,30 @@ def test_truth_from_another_dataset_and_info_on_a_bag_folder(tmp_path):
     assert report.written["/groundtruth/pose"] == 11076 and report.written["/groundtruth/tags"] == 1
     info = json.loads(run_rover("info", "--json", str(source / "bag")).stdout)
     assert info["message_count"] == 34947
+
+
+def test_custom_message_definitions_in_the_bag_are_honoured(tmp_path):
+    from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    definition = "std_msgs/Header header\nuint8 rssi\nuint16 channel\nuint8[] bfee\nstring note\n"
+    store.register(get_types_from_msg(definition, "mylab_msgs/msg/WifiCsi"))
+    Custom = store.types["mylab_msgs/msg/WifiCsi"]
+    Time, Header = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+    bag = tmp_path / "bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        csi = writer.add_connection("/wifi", "mylab_msgs/msg/WifiCsi", typestore=store)
+        imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=typestore)
+        for i in range(20):
+            stamp = T0_NS + i * 10_000_000
+            head = Header(stamp=Time(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="nic")
+            msg = Custom(header=head, rssi=40, channel=149, bfee=np.full(7, i, dtype=np.uint8), note="lab")
+            writer.write(csi, stamp, store.serialize_cdr(msg, "mylab_msgs/msg/WifiCsi"))
+            writer.write(imu, stamp, serialize(make("sensor_msgs/msg/Imu", header=header(stamp))))
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP + "topics: {csi: /wifi, imu: /imu, odom: null}\n")
+    out = tmp_path / "out.mcap"
+    convert([bag], out, setup=setup)
+    frames = [deserialize(d, "rover_msgs/msg/CsiFrame") for t, _s, d in read_bag(out) if t == "/csi"]
+    assert [f.bfee.tolist() for f in frames] == [[i] * 7 for i in range(20)]
+    assert {f.channel for f in frames} == {149}
