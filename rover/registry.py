@@ -11,6 +11,7 @@ BUILTINS: dict[str, str] = {
     "dataset_replay": "rover.drivers.replay:DatasetReplay",
     "channel_sweep": "rover.operators.channel_sweep:ChannelSweep",
     "csi_decode": "rover.operators.csi_decode:CsiDecode",
+    "aoa": "rover.operators.aoa:Aoa",
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
     "csi_file": "rover.drivers.csi_file:CsiFile",

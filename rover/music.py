@@ -1,0 +1,174 @@
+"""Joint angle-delay MUSIC for small arrays of any 2-D geometry, vectorized over packets.
+
+The CSI of one packet, H[subcarrier, antenna], is cleaned (per-chain calibration removed, the
+sampling-time offset's phase slope fitted and removed), then turned into a covariance by
+smoothing along subcarriers: windows of L consecutive subcarriers from the runs that are evenly
+spaced (the 20 MHz set is not: -28..-2 and 1..27 step by 625 kHz, -1 and 28 do not), all three
+antennas in every window. Shifting along frequency keeps each window's array manifold the same,
+which is what smoothing needs; shifting along antennas (SpotFi's smoothing) needs an array whose
+subarrays are translates of each other, which a triangle is not. No forward-backward averaging:
+on a non-centro-symmetric array it mirrors the angles by 180 degrees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rover.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCARRIERS_20MHZ, channel_freq_hz
+
+RUN_STEP = 2
+"""Subcarrier index step inside an evenly spaced run (625 kHz at 20 MHz)."""
+NOISE_FACTOR = 10.0
+"""An eigenvalue counts as a path when it is this many times the noise level (median of the lower half)..."""
+PATH_FLOOR = 10 ** -2.5
+CHUNK_PACKETS = 64
+"""...and within 25 dB of the strongest: weaker ones are model mismatch (the antenna phases change a
+little across the 20 MHz band), not paths."""
+
+
+def even_runs(indices: np.ndarray) -> list[np.ndarray]:
+    """Positions of the maximal runs of subcarriers spaced RUN_STEP apart."""
+    breaks = np.flatnonzero(np.diff(indices) != RUN_STEP) + 1
+    return [run for run in np.split(np.arange(len(indices)), breaks) if len(run) > 1]
+
+
+@dataclass(frozen=True)
+class Peaks:
+    """Up to `k` spectrum peaks per packet: angle (rad, robot frame), delay (s), normalized height."""
+
+    angle: np.ndarray   # (P, k)
+    delay: np.ndarray   # (P, k)
+    height: np.ndarray  # (P, k), 0 where there is no peak
+
+
+class JointMusic:
+    """Estimator for one array and one channel: build once, apply to many packets."""
+
+    def __init__(self, antennas_m: np.ndarray, channel: int, window: int = 8, angle_step_deg: float = 4.0,
+                 delay_range_s: tuple[float, float] = (-100e-9, 200e-9), delay_step_s: float = 10e-9,
+                 max_paths: int = 4, refine_steps: int = 8):
+        self.antennas = np.asarray(antennas_m, dtype=np.float64)
+        self.channel = channel
+        self.center_hz = channel_freq_hz(channel)
+        self.offsets_hz = SUBCARRIERS_20MHZ * SUBCARRIER_SPACING_HZ
+        runs = even_runs(SUBCARRIERS_20MHZ)
+        self.windows = np.array([run[i:i + window] for run in runs for i in range(len(run) - window + 1)])
+        if len(self.windows) == 0:
+            raise ValueError(f"smoothing window {window} is longer than every evenly spaced run of subcarriers")
+        self.window = window
+        self.step_hz = RUN_STEP * SUBCARRIER_SPACING_HZ
+        self.max_paths = max_paths
+        self.angles = np.radians(np.arange(-180.0, 180.0, angle_step_deg))
+        self.delays = np.arange(delay_range_s[0], delay_range_s[1] + delay_step_s / 2, delay_step_s)
+        self.angle_manifold = self.steer_angle(self.angles)        # (Na, M)
+        self.delay_manifold = self.steer_delay(self.delays)        # (Nd, L)
+        self.refine_offsets = np.linspace(-1.0, 1.0, 2 * refine_steps + 1)
+
+    def steer_angle(self, angles: np.ndarray) -> np.ndarray:
+        """Antenna phases of a plane wave from each angle: exp(+j 2 pi f p.u / c) (nearer antennas lead)."""
+        u = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+        return np.exp(2j * np.pi * self.center_hz * (u @ self.antennas.T) / SPEED_OF_LIGHT_M_S)
+
+    def steer_delay(self, delays: np.ndarray) -> np.ndarray:
+        """Phases along one smoothing window of a path with each delay: exp(-j 2 pi l step tau)."""
+        return np.exp(-2j * np.pi * self.step_hz * np.arange(self.window)[None, :] * delays[:, None])
+
+    def clean(self, csi: np.ndarray, phase_offsets_rad: np.ndarray | None = None, sto: bool = True) -> np.ndarray:
+        """Remove the per-chain phase offsets and each packet's sampling-time-offset slope. csi: (P, 30, M)."""
+        h = np.asarray(csi, dtype=np.complex128)
+        if phase_offsets_rad is not None:
+            h = h * np.exp(-1j * np.asarray(phase_offsets_rad))[None, None, :]
+        if not sto:
+            return h
+        phase = np.unwrap(np.angle(h), axis=1)
+        f = self.offsets_hz - self.offsets_hz.mean()
+        centred = phase - phase.mean(axis=1, keepdims=True)
+        slope = np.einsum("n,pnm->p", f, centred) / (h.shape[2] * np.sum(f * f))
+        return h * np.exp(-1j * slope[:, None, None] * f[None, :, None])
+
+    def covariance(self, clean: np.ndarray) -> np.ndarray:
+        """Subcarrier-smoothed covariance per packet, (P, M*L, M*L), element order antenna-major."""
+        snapshots = clean[:, self.windows, :]                        # (P, W, L, M)
+        x = snapshots.transpose(0, 1, 3, 2).reshape(clean.shape[0], len(self.windows), -1)
+        return np.einsum("pwi,pwj->pij", x, x.conj()) / len(self.windows)
+
+    def spectrum(self, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """MUSIC pseudo-spectrum over the (angle, delay) grid, (P, Na, Nd), and the number of paths used."""
+        values, vectors = np.linalg.eigh(cov)                        # ascending
+        values = np.maximum(values[:, ::-1], 0)
+        vectors = vectors[:, :, ::-1]
+        noise = np.median(values[:, values.shape[1] // 2:], axis=1, keepdims=True) + 1e-30
+        floor = np.maximum(NOISE_FACTOR * noise, values[:, :1] * PATH_FLOOR)
+        paths = np.clip(np.sum(values > floor, axis=1), 1, self.max_paths)
+        signal = vectors[:, :, :self.max_paths] * (np.arange(self.max_paths)[None, :] < paths[:, None])[:, None, :]
+        m, l = len(self.antennas), self.window
+        e = signal.reshape(signal.shape[0], m, l, self.max_paths).transpose(0, 3, 1, 2).conj()   # (P, K, M, L)
+        along_delay = e @ self.delay_manifold.T                                                 # (P, K, M, Nd)
+        out = np.empty((len(cov), len(self.angles), len(self.delays)))
+        for start in range(0, len(cov), CHUNK_PACKETS):
+            part = along_delay[start:start + CHUNK_PACKETS]
+            p, k, _, nd = part.shape
+            flat = part.transpose(2, 0, 1, 3).reshape(m, -1)                                    # one GEMM for all
+            projection = (self.angle_manifold @ flat).reshape(-1, p, k, nd)                     # (Na, P, K, Nd)
+            captured = np.sum(projection.real ** 2 + projection.imag ** 2, axis=2)              # (Na, P, Nd)
+            out[start:start + p] = 1.0 / np.maximum(m * l - captured.transpose(1, 0, 2), 1e-9 * m * l)
+        self._signal = e
+        return out, paths
+
+    def refine(self, peaks: Peaks) -> Peaks:
+        """Search a fine grid (one coarse step either side) around each peak, with the signal subspace
+        of the last `spectrum` call: coarse-to-fine, so the whole grid never has to be fine."""
+        e = self._signal                                                             # (P, K, M, L)
+        angle_step = self.angles[1] - self.angles[0]
+        delay_step = self.delays[1] - self.delays[0]
+        angles = peaks.angle[..., None] + self.refine_offsets * angle_step           # (P, J, F)
+        delays = peaks.delay[..., None] + self.refine_offsets * delay_step
+        a = self.steer_angle(angles)                                                 # (P, J, F, M)
+        b = self.steer_delay(delays.reshape(-1)).reshape(*delays.shape, self.window)  # (P, J, F, L)
+        t = e[:, None] @ b.transpose(0, 1, 3, 2)[:, :, None]                         # (P, J, K, M, F)
+        proj = a[:, :, None] @ t                                                     # (P, J, K, Fa, Fd)
+        captured = np.sum(proj.real ** 2 + proj.imag ** 2, axis=2)                   # (P, J, Fa, Fd)
+        n = captured.shape[-1]
+        best = np.argmax(captured.reshape(*captured.shape[:2], -1), axis=-1)
+        ia, idl = np.unravel_index(best, (n, n))
+        pick = lambda grid, index: np.take_along_axis(grid, index[..., None], axis=-1)[..., 0]
+        angle = np.angle(np.exp(1j * pick(angles, ia)))
+        return Peaks(np.where(peaks.height > 0, angle, peaks.angle),
+                     np.where(peaks.height > 0, pick(delays, idl), peaks.delay), peaks.height)
+
+    def peaks(self, spectrum: np.ndarray, k: int = 3) -> Peaks:
+        """The k highest local maxima per packet, refined by parabolic interpolation on the grid."""
+        s = spectrum
+        padded = np.concatenate([s[:, -1:], s, s[:, :1]], axis=1)                     # angles wrap around
+        padded = np.pad(padded, ((0, 0), (0, 0), (1, 1)), constant_values=-np.inf)     # delays do not
+        na, nd = s.shape[1:]
+        local = np.ones(s.shape, dtype=bool)
+        for da in (0, 1, 2):
+            for dd in (0, 1, 2):
+                if (da, dd) != (1, 1):
+                    local &= s >= padded[:, da:da + na, dd:dd + nd]
+        scores = np.where(local, s, 0.0).reshape(len(s), -1)
+        top = np.argpartition(scores, -k, axis=1)[:, -k:]
+        order = np.argsort(np.take_along_axis(scores, top, axis=1), axis=1)[:, ::-1]
+        top = np.take_along_axis(top, order, axis=1)
+        height = np.take_along_axis(scores, top, axis=1)
+        ia, idl = np.unravel_index(top, s.shape[1:])
+        p = np.arange(len(s))[:, None]
+        centre = s[p, ia, idl]
+        da = _parabola(s[p, (ia - 1) % na, idl], centre, s[p, (ia + 1) % na, idl])
+        inner = (idl > 0) & (idl < nd - 1)
+        dd = np.where(inner, _parabola(s[p, ia, np.maximum(idl - 1, 0)], centre, s[p, ia, np.minimum(idl + 1, nd - 1)]), 0)
+        angle_step = self.angles[1] - self.angles[0]
+        delay_step = self.delays[1] - self.delays[0]
+        angle = np.angle(np.exp(1j * (self.angles[ia] + da * angle_step)))
+        delay = self.delays[idl] + dd * delay_step
+        norm = height / np.maximum(height.max(axis=1, keepdims=True), 1e-30)
+        return Peaks(angle, delay, np.where(height > 0, norm, 0.0))
+
+
+def _parabola(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Offset in grid steps of the vertex of the parabola through three equally spaced points."""
+    denom = left - 2 * centre + right
+    return np.where(np.abs(denom) > 1e-30, np.clip(0.5 * (left - right) / np.where(denom == 0, 1, denom), -0.5, 0.5), 0.0)
