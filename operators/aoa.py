@@ -51,6 +51,8 @@ class AoaParams:
     max_burst_s: float = 0.5
     cluster_deg: float = 15.0
     """peaks closer than this to the direct path's angle do not count as competing"""
+    cluster_ns: float = 15.0
+    """competing peaks count less the farther their delay is from the direct path's"""
     support: float = 0.01
     """pseudo-spectrum height, relative to the highest peak, a peak needs to be a direct-path candidate"""
     std_floor_deg: float = 4.0
@@ -110,18 +112,21 @@ def choose_direct(angle: np.ndarray, delay: np.ndarray, height: np.ndarray, path
 
     Candidates are the `paths` highest peaks (as many as the covariance has signal eigenvalues)
     that reach `support` of the highest; the direct path is the candidate with the smallest
-    delay. Other candidates at other angles widen the spread in proportion to their height."""
+    delay. A candidate at another angle whose delay is hard to tell from the chosen one makes
+    the choice doubtful: it widens the spread by its angular distance, weighted by its height
+    and by how close its delay is."""
     top = np.argsort(-height)[:max(paths, 1)]
     candidates = top[height[top] >= p.support * height.max()] if height.max() > 0 else np.array([], int)
     if len(candidates) == 0:
         return None
     best = candidates[np.argmin(delay[candidates])]
-    others = [j for j in candidates if j != best]
-    gaps = np.array([np.angle(np.exp(1j * (angle[j] - angle[best]))) for j in others])
-    weights = np.array([height[j] for j in others])
-    far = np.abs(gaps) > math.radians(p.cluster_deg) if len(others) else np.array([], bool)
-    spread = float(np.sqrt(np.sum(weights[far] * gaps[far] ** 2) / (height[best] + weights[far].sum())))
-    quality = QUALITY_WEAK_SUPPORT if far.any() else QUALITY_GOOD
+    others = np.array([j for j in candidates if j != best], dtype=int)
+    gaps = np.angle(np.exp(1j * (angle[others] - angle[best])))
+    close_in_delay = np.exp(-(((delay[others] - delay[best]) / (p.cluster_ns * 1e-9)) ** 2))
+    weights = height[others] / (height[best] + height[others]) * close_in_delay
+    far = np.abs(gaps) > math.radians(p.cluster_deg)
+    spread = float(np.sqrt(np.sum(weights[far] * gaps[far] ** 2)))
+    quality = QUALITY_WEAK_SUPPORT if np.any(weights[far] > 0.25) else QUALITY_GOOD
     return float(angle[best]), float(delay[best]), spread, quality
 
 

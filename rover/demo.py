@@ -33,18 +33,17 @@ def default_dataset() -> tuple[Path, Path] | None:
 def summarize(path: Path, console: Console) -> None:
     counts: Counter = Counter()
     tags: Counter = Counter()
-    snr: dict[int, list[float]] = {}
+    spread: dict[int, list[tuple[int, float]]] = {}
     first = last = None
     with path.open("rb") as f:
         for _schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
             counts[channel.topic] += 1
             first = message.log_time if first is None else min(first, message.log_time)
             last = message.log_time if last is None else max(last, message.log_time)
-            if channel.topic == "/rover/csi":
-                csi = deserialize(message.data, "rover_msgs/msg/Csi")
-                tags[(csi.tag_id, csi.channel)] += 1
-                power = float(np.mean(csi.csi_real.astype(np.float64) ** 2 + csi.csi_imag.astype(np.float64) ** 2))
-                snr.setdefault(csi.tag_id, []).append(10 * np.log10(power) if power > 0 else np.nan)
+            if channel.topic == "/rover/aoa":
+                aoa = deserialize(message.data, "rover_msgs/msg/Aoa")
+                tags[(aoa.tag_id, aoa.channel)] += 1
+                spread.setdefault(aoa.tag_id, []).append((aoa.packets, np.degrees(aoa.std_rad)))
     duration_s = (last - first) / 1e9 if counts else 0.0
     table = Table(title=f"What the pipeline recorded ({duration_s:.1f} s of data)")
     table.add_column("topic")
@@ -54,11 +53,12 @@ def summarize(path: Path, console: Console) -> None:
         table.add_row(topic, f"{n:,}", f"{n / duration_s:.1f} Hz" if duration_s else "-")
     console.print(table)
     if tags:
-        per_tag = Table(title="Decoded CSI per tag")
-        for column in ("tag", "channel", "frames", "median SNR per subcarrier"):
+        per_tag = Table(title="Angles of arrival per tag")
+        for column in ("tag", "channel", "bursts", "packets per burst", "median std"):
             per_tag.add_column(column, justify="right")
         for (tag, ch), n in sorted(tags.items()):
-            per_tag.add_row(str(tag), str(ch), f"{n:,}", f"{np.nanmedian(snr[tag]):.1f} dB")
+            packets, std = np.array(spread[tag]).T
+            per_tag.add_row(str(tag), str(ch), f"{n:,}", f"{np.median(packets):.0f}", f"{np.median(std):.1f} deg")
         console.print(per_tag)
 
 
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     result = args.output / "results.mcap"
     summarize(result, console)
     console.print(f"Wrote {result}")
-    console.print("Stages so far: dataset replay -> channel sweep -> CSI decoding -> recorder, over Zenoh. "
+    console.print("Stages so far: dataset replay -> channel sweep -> CSI decoding -> AoA -> recorder, over Zenoh. "
                   "Draw the pipeline with `rover graph`.")
     return 0
 
