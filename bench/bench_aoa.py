@@ -1,0 +1,129 @@
+"""AoA accuracy and speed: the `aoa` operator on simulated `paper` runs (several seeds) and on the
+independent `recording_sample`, beside a plain Bartlett beamformer on the same bursts.
+Goals (issue 5): median <= 5 deg LOS, <= 12 deg NLOS on `paper`; >= 2,000 packets/s on one core."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+
+from rover.datasets.convert import convert
+from rover.datasets.scenario import load_scenario
+from rover.datasets.simulate import simulate
+from rover.drivers.intel5300 import decode_bfee
+from rover.messages import deserialize, make
+from rover.operators.aoa import Aoa
+from rover.rig import rig_from_text
+from rover.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load(path: Path):
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        frames, truth = [], {}
+        for _s, channel, m in reader.iter_messages(topics=["/csi", "/groundtruth/aoa"]):
+            if channel.topic == "/csi":
+                frames.append(deserialize(m.data, "rover_msgs/msg/CsiFrame"))
+            else:
+                truth[m.log_time] = deserialize(m.data, "rover_msgs/msg/Aoa").angle_rad
+    return rig_from_text(meta["rover.setup"]["yaml"]), frames, truth
+
+
+def bartlett(csi: np.ndarray, channel: int, rig) -> float:
+    grid = np.radians(np.arange(-180.0, 180.0, 1.0))
+    u = np.stack([np.cos(grid), np.sin(grid)], axis=1)
+    f = subcarrier_freqs_hz(channel)
+    steer = np.exp(2j * np.pi * f[:, None, None] * (u @ rig.antenna_positions_m.T)[None] / SPEED_OF_LIGHT_M_S)
+    h = csi * np.exp(-1j * rig.phase_offsets(channel))[None, None, :]
+    return float(grid[np.argmax(np.abs(np.einsum("fgm,pfm->pfg", steer.conj(), h)).sum(axis=(0, 1)))])
+
+
+def evaluate(rig, frames, truth: dict[int, float], nlos: set[int]) -> dict:
+    records = decode_bfee([bytes(fr.bfee) for fr in frames])
+    owner = {t.channel: t.id for t in rig.tags}
+    op = Aoa()
+    list(op.on_input("setup", make("rover_msgs/msg/RigSetup", setup_yaml=rig.text), 0))
+    messages = []
+    for k, fr in enumerate(frames):
+        c = records.csi[k, :, :3, :1]
+        messages.append(make("rover_msgs/msg/Csi", header=fr.header, tag_id=owner[fr.channel], channel=fr.channel,
+                             nrx=3, ntx=1, csi_real=c.real.astype(np.float32).ravel(),
+                             csi_imag=c.imag.astype(np.float32).ravel()))
+    start = time.process_time()
+    out = []
+    for msg in messages:
+        out += [e.msg for e in op.on_input("csi", msg, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)]
+    out += [e.msg for e in op.on_end()]
+    cpu_s = time.process_time() - start
+    stamps = np.array(sorted(truth))
+    values = np.array([truth[s] for s in stamps])
+    by_stamp = {fr.header.stamp.sec * 10**9 + fr.header.stamp.nanosec: k for k, fr in enumerate(frames)}
+    errors = {"los": [], "nlos": [], "bartlett_los": [], "bartlett_nlos": [], "z": []}
+    for aoa in out:
+        stamp = aoa.header.stamp.sec * 10**9 + aoa.header.stamp.nanosec
+        true = values[min(np.searchsorted(stamps, stamp), len(stamps) - 1)]
+        kind = "nlos" if aoa.tag_id in nlos else "los"
+        error = math.degrees(abs(np.angle(np.exp(1j * (aoa.angle_rad - true)))))
+        errors[kind].append(error)
+        errors["z"].append(error / math.degrees(aoa.std_rad))
+        k = by_stamp[stamp]
+        burst = [j for j in range(max(0, k - 12), min(len(frames), k + 12)) if frames[j].channel == aoa.channel
+                 and abs(frames[j].header.stamp.sec * 10**9 + frames[j].header.stamp.nanosec - stamp) < 4e7]
+        b = bartlett(records.csi[burst, :, :3, 0], aoa.channel, rig)
+        errors[f"bartlett_{kind}"].append(math.degrees(abs(np.angle(np.exp(1j * (b - true))))))
+    figures = {"bursts": len(out), "packets_per_cpu_s": len(frames) / cpu_s}
+    for key, e in errors.items():
+        if e and key != "z":
+            figures[f"{key}_median_deg"] = float(np.median(e))
+            figures[f"{key}_p90_deg"] = float(np.percentile(e, 90))
+    figures["error_over_std_rms"] = float(np.sqrt(np.mean(np.square(errors["z"]))))
+    return figures
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    results: dict = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in args.seeds:
+            path = Path(tmp) / f"paper-{seed}.mcap"
+            scenario = load_scenario("paper")
+            simulate(scenario, seed, path)
+            rig, frames, truth = load(path)
+            results[f"paper_seed{seed}"] = evaluate(rig, frames, truth, {t.id for t in scenario.tags if t.nlos})
+        sample = Path(os.environ.get("ROVER_TEST_DATA", ROOT.parent / "shared" / "data")) / "recording_sample"
+        if sample.is_dir():
+            path = Path(tmp) / "sample.mcap"
+            convert([sample], path)
+            rig, frames, _ = load(path)
+            truth = {int(r["stamp_ns"]): math.radians(float(r["aoa_deg"]))
+                     for r in csv.DictReader((sample / "truth_csi.csv").open())}
+            results["recording_sample"] = evaluate(rig, frames, truth, set())
+    for name, f in results.items():
+        line = (f"aoa {name}: LOS median {f['los_median_deg']:.1f} deg (p90 {f['los_p90_deg']:.1f}), Bartlett "
+                f"{f['bartlett_los_median_deg']:.1f} deg")
+        if "nlos_median_deg" in f:
+            line += (f"; NLOS median {f['nlos_median_deg']:.1f} deg (p90 {f['nlos_p90_deg']:.1f}), Bartlett "
+                     f"{f['bartlett_nlos_median_deg']:.1f} deg")
+        line += f"; {f['packets_per_cpu_s']:,.0f} packets/s; rms(error/std) {f['error_over_std_rms']:.2f}"
+        print(line)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
