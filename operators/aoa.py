@@ -146,6 +146,7 @@ class Aoa(Operator):
         self.burst: list[tuple[Any, int]] = []
         self.skipped: Counter = Counter()
         self.half_plane_normal: np.ndarray | None = None
+        self._ambiguity_tables: dict[float, np.ndarray] = {}
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "setup":
@@ -229,15 +230,22 @@ class Aoa(Operator):
 
     def _ambiguity(self, theta: float, std: float, quality: int, freq_hz: float) -> tuple[float, int]:
         """Inflate the std where another direction 10+ degrees away looks almost the same to the array."""
-        others = theta + np.radians(np.arange(AMBIGUITY_SEPARATION_DEG, 360.0 - AMBIGUITY_SEPARATION_DEG + 1, 1.0))
-        corr = manifold_correlation(self.rig.antenna_positions_m, freq_hz, np.concatenate([[theta], others]))[0, 1:]
         if self.half_plane_normal is not None:
             return std, quality
-        worst = float(corr.max())
+        worst = self._worst_correlation(freq_hz)[int(round(math.degrees(theta))) % 360]
         if worst > NEAR_AMBIGUOUS_CORRELATION:
             std *= 1 + 10 * (worst - NEAR_AMBIGUOUS_CORRELATION)
             quality = max(quality, QUALITY_AMBIGUOUS)
         return std, quality
+
+    def _worst_correlation(self, freq_hz: float) -> np.ndarray:
+        """Per whole degree, the highest array correlation with any direction 10+ degrees away (cached)."""
+        if freq_hz not in self._ambiguity_tables:
+            angles = np.radians(np.arange(360.0))
+            corr = manifold_correlation(self.rig.antenna_positions_m, freq_hz, angles)
+            gap = np.abs(np.angle(np.exp(1j * (angles[:, None] - angles[None, :]))))
+            self._ambiguity_tables[freq_hz] = np.where(gap >= np.radians(AMBIGUITY_SEPARATION_DEG), corr, 0).max(axis=1)
+        return self._ambiguity_tables[freq_hz]
 
     def on_end(self):
         if self.burst:

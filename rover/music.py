@@ -149,11 +149,15 @@ class JointMusic:
             for dd in (0, 1, 2):
                 if (da, dd) != (1, 1):
                     local &= s >= padded[:, da:da + na, dd:dd + nd]
-        scores = np.where(local, s, 0.0).reshape(len(s), -1)
-        top = np.argpartition(scores, -k, axis=1)[:, -k:]
-        order = np.argsort(np.take_along_axis(scores, top, axis=1), axis=1)[:, ::-1]
-        top = np.take_along_axis(top, order, axis=1)
-        height = np.take_along_axis(scores, top, axis=1)
+        flat_local = local.reshape(len(s), -1)
+        flat = s.reshape(len(s), -1)
+        top = np.zeros((len(s), k), dtype=np.int64)
+        height = np.zeros((len(s), k))
+        for row in range(len(s)):
+            found = np.flatnonzero(flat_local[row])
+            best = found[np.argsort(flat[row, found])[::-1][:k]]
+            top[row, :len(best)] = best
+            height[row, :len(best)] = flat[row, best]
         ia, idl = np.unravel_index(top, s.shape[1:])
         p = np.arange(len(s))[:, None]
         centre = s[p, ia, idl]
