@@ -299,7 +299,7 @@ def convert(paths: Sequence[str | Path], output: str | Path, *, setup: str | Pat
         rows: list[tuple[int, int, str, Any]] = []
         last: dict[str, int] = {}
         same_layout: dict[int, bool] = {}
-        for n, (conn, log_ns, raw) in enumerate(reader.messages(connections=connections)):
+        for n, (conn, _log_ns, raw) in enumerate(reader.messages(connections=connections)):
             if progress is not None and n % 2000 == 0:
                 progress(n, total)
             role = role_of[conn.topic]

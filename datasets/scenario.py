@@ -3,7 +3,6 @@ trajectory, IMU, odometry) that users copy and edit; `--set section.key=value` o
 
 from __future__ import annotations
 
-import dataclasses
 import typing
 from dataclasses import dataclass, field
 from importlib import resources

@@ -11,7 +11,7 @@ The results match the tool's own `read_bf_file.m` and `get_scaled_csi.m`.
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
