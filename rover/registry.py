@@ -12,6 +12,7 @@ BUILTINS: dict[str, str] = {
     "channel_sweep": "rover.operators.channel_sweep:ChannelSweep",
     "csi_decode": "rover.operators.csi_decode:CsiDecode",
     "aoa": "rover.operators.aoa:Aoa",
+    "preintegration": "rover.operators.preintegration:Preintegration",
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
     "csi_file": "rover.drivers.csi_file:CsiFile",
