@@ -193,7 +193,7 @@ def test_bad_inputs_are_one_line_and_status_2(tmp_path, dataset):
 def test_the_default_pipeline_runs_from_any_directory(tmp_path, dataset):
     proc = run_rover("run", "--dataset", str(dataset), "--output", "res", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert len(read_bag(tmp_path / "res" / "results.mcap")) == 4400
+    assert read_bag(tmp_path / "res" / "results.mcap") == [], "an IMU-only dataset gives no AoA and no epochs"
 
 
 def test_watermarks_keep_a_live_run_flowing_past_a_silent_input(tmp_path):
