@@ -11,7 +11,7 @@ def test_mermaid_of_the_default_pipeline():
     out = proc.stdout
     assert out.startswith("flowchart LR")
     assert "subgraph nuc[host nuc]" in out and "subgraph laptop[host laptop]" in out
-    assert 'replay -- "imu → imu<br/>sensor_msgs/Imu" --> record' in out
+    assert 'replay -- "imu → imu<br/>sensor_msgs/Imu" --> preint' in out and "subgraph base[host base]" in out
 
 
 def test_dot_of_the_default_pipeline():
