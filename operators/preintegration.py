@@ -44,17 +44,23 @@ class PreintegrationParams:
     """gyro bias left after the stationary estimate (1 sigma)"""
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices of vectors (N, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
 
 
-def exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector w (Rodrigues)."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-12:
-        return np.eye(3) + skew(w)
-    k = skew(w / angle)
-    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+def exp_so3_batch(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices of rotation vectors (N, 3), Rodrigues with a series near zero."""
+    angle = np.linalg.norm(w, axis=1)
+    k = skew_batch(w)
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    s = np.where(small, 1.0 - angle ** 2 / 6, np.sin(safe) / safe)
+    c = np.where(small, 0.5 - angle ** 2 / 24, (1 - np.cos(safe)) / safe ** 2)
+    return np.eye(3)[None] + s[:, None, None] * k + c[:, None, None] * (k @ k)
 
 
 def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -123,6 +129,7 @@ class Preintegration(Operator):
         self.increment = _Increment.zero()
         self.epoch_attitude: np.ndarray | None = None
         self.epoch_ns: int | None = None
+        self.pending: list[tuple[int, np.ndarray, np.ndarray, int]] = []
         self.dropped = {"duplicate": 0, "out of order": 0, "not finite": 0}
         self.gaps = 0
 
@@ -153,7 +160,7 @@ class Preintegration(Operator):
         if self.attitude is None:
             self._initialize(stamp, w, f)
             return
-        self._integrate(self.last, stamp)
+        self.pending.append((*self.last, stamp))
         self.last = (stamp, w, f)
 
     def _initialize(self, stamp: int, w: np.ndarray, f: np.ndarray) -> None:
@@ -181,51 +188,76 @@ class Preintegration(Operator):
         dts = np.diff([s[0] for s in self.still]) / 1e9
         self.nominal_dt = float(np.median(dts)) if len(dts) else None
         self.epoch_attitude = self.attitude.copy()
+        self.pending = [(*a, b[0]) for a, b in zip(self.still[:-1], self.still[1:])]
         self.last = self.still[-1]
-        for (t0, w0, f0), (t1, _w, _f) in zip(self.still[:-1], self.still[1:]):
-            if self.epoch_ns is None or t1 > self.epoch_ns:
-                self._integrate((t0, w0, f0), t1)
         self.still = []
 
-    def _integrate(self, sample: tuple[int, np.ndarray, np.ndarray], until: int) -> None:
-        """Advance the increment and the attitude by one sample held from its stamp to `until`."""
-        start, w, f = sample
-        dt = (until - start) / 1e9
-        if self.nominal_dt and dt > self.params.gap_factor * self.nominal_dt:
-            self.gaps += 1
-            if self.gaps == 1 or self.gaps % 100 == 0:
-                log.warning("preintegration: %d gap(s) in the IMU stream (last %.3f s)", self.gaps, dt)
+    def _integrate(self, intervals: list[tuple[int, np.ndarray, np.ndarray, int]]) -> None:
+        """Advance the increment over samples each held from its stamp to the next, all at once."""
+        if not intervals:
+            return
+        starts = np.array([i[0] for i in intervals], dtype=np.int64)
+        ends = np.array([i[3] for i in intervals], dtype=np.int64)
+        w = np.array([i[1] for i in intervals]) - self.bias
+        f = np.array([i[2] for i in intervals])
+        dt = (ends - starts) / 1e9
+        if self.nominal_dt:
+            gaps = int(np.sum(dt > self.params.gap_factor * self.nominal_dt))
+            if gaps:
+                self.gaps += gaps
+                log.warning("preintegration: %d gap(s) in the IMU stream so far (longest now %.3f s)",
+                            self.gaps, float(dt.max()))
         inc = self.increment
-        omega = w - self.bias
-        step = exp_so3(omega * dt)
-        p = self.params
-        a = np.zeros((9, 9))
-        a[0:3, 0:3] = step.T
-        a[3:6, 0:3] = -inc.rotation @ skew(f) * dt
-        a[3:6, 3:6] = np.eye(3)
-        a[6:9, 0:3] = -0.5 * inc.rotation @ skew(f) * dt * dt
-        a[6:9, 3:6] = np.eye(3) * dt
-        a[6:9, 6:9] = np.eye(3)
-        gyro_var = p.gyro_noise_rad_s_rthz ** 2 / max(dt, 1e-6)
-        accel_var = p.accel_noise_m_s2_rthz ** 2 / max(dt, 1e-6)
-        b_a = np.vstack([np.zeros((3, 3)), inc.rotation * dt, 0.5 * inc.rotation * dt * dt])
-        inc.covariance = a @ inc.covariance @ a.T + b_a @ b_a.T * accel_var
-        inc.covariance[0:3, 0:3] += np.eye(3) * gyro_var * dt * dt
-        inc.bias_position = inc.bias_position + inc.bias_velocity * dt + 0.5 * inc.rotation * dt * dt
-        inc.bias_velocity = inc.bias_velocity + inc.rotation * dt
-        inc.position = inc.position + inc.velocity * dt + 0.5 * inc.rotation @ f * dt * dt
-        inc.velocity = inc.velocity + inc.rotation @ f * dt
-        inc.rotation = inc.rotation @ step
-        inc.dt += dt
-        inc.samples += 1
-        self.attitude = self.attitude @ step
+        steps = exp_so3_batch(w * dt[:, None])
+        rotations = np.empty((len(dt), 3, 3))
+        current = inc.rotation
+        for k in range(len(dt)):
+            rotations[k] = current
+            current = current @ steps[k]
+        accel = np.einsum("kij,kj->ki", rotations, f)
+        dv = accel * dt[:, None]
+        velocity_before = inc.velocity + np.cumsum(dv, axis=0) - dv
+        inc.position = inc.position + np.sum(velocity_before * dt[:, None] + 0.5 * accel * dt[:, None] ** 2, axis=0)
+        inc.velocity = inc.velocity + dv.sum(axis=0)
+        dj = rotations * dt[:, None, None]
+        jv_before = inc.bias_velocity + np.cumsum(dj, axis=0) - dj
+        inc.bias_position = inc.bias_position + np.sum(jv_before * dt[:, None, None] + 0.5 * dj * dt[:, None, None],
+                                                       axis=0)
+        inc.bias_velocity = inc.bias_velocity + dj.sum(axis=0)
+        inc.covariance = self._propagate(inc.covariance, steps, rotations, f, dt)
+        inc.rotation = current
+        inc.dt += float(dt.sum())
+        inc.samples += len(dt)
+        self.attitude = self.epoch_attitude @ current
+
+    def _propagate(self, cov: np.ndarray, steps, rotations, f, dt) -> np.ndarray:
+        """Forster's error-state covariance propagation, sample by sample (9x9 per step)."""
+        n = len(dt)
+        rf = np.einsum("kij,kjl->kil", rotations, skew_batch(f))
+        a = np.zeros((n, 9, 9))
+        a[:, 0:3, 0:3] = steps.transpose(0, 2, 1)
+        a[:, 3:6, 0:3] = -rf * dt[:, None, None]
+        a[:, 6:9, 0:3] = -0.5 * rf * (dt ** 2)[:, None, None]
+        a[:, 3:6, 3:6] = np.eye(3)
+        a[:, 6:9, 3:6] = np.eye(3) * dt[:, None, None]
+        a[:, 6:9, 6:9] = np.eye(3)
+        safe = np.maximum(dt, 1e-6)
+        b = np.concatenate([rotations * dt[:, None, None], 0.5 * rotations * (dt ** 2)[:, None, None]], axis=1)
+        noise = np.zeros((n, 9, 9))
+        noise[:, 3:9, 3:9] = b @ b.transpose(0, 2, 1) * (self.params.accel_noise_m_s2_rthz ** 2 / safe)[:, None, None]
+        noise[:, 0:3, 0:3] = np.eye(3) * (self.params.gyro_noise_rad_s_rthz ** 2 / safe * dt ** 2)[:, None, None]
+        for k in range(n):
+            cov = a[k] @ cov @ a[k].T + noise[k]
+        return cov
 
     def _epoch(self, stamp: int):
         if self.attitude is None or self.last is None or (self.epoch_ns is not None and stamp <= self.epoch_ns):
             return
         if stamp > self.last[0]:
-            self._integrate(self.last, stamp)
+            self.pending.append((*self.last, stamp))
             self.last = (stamp, self.last[1], self.last[2])
+        self._integrate(self.pending)
+        self.pending = []
         inc = self.increment
         if self.epoch_ns is not None:
             r0 = self.epoch_attitude
