@@ -185,7 +185,6 @@ class OperatorTask(Task):
             session.declare_subscriber(keys.port_key(pipeline, wire.source, wire.source_port),
                                        self._enqueue_for(port))
             for port, wire in node.spec.inputs.items()]
-        self._warned: set[str] = set()
 
     def _enqueue_for(self, port: str):
         inbox = self.inbox
