@@ -56,6 +56,7 @@ class AoaParams:
     support: float = 0.01
     """pseudo-spectrum height, relative to the highest peak, a peak needs to be a direct-path candidate"""
     std_floor_deg: float = 4.0
+    spread_weight: float = 1.0
     calibrate: bool = True
     """remove the rig's per-chain phase offsets (off only to show what calibration is worth)"""
     remove_sto: bool = True
@@ -220,7 +221,7 @@ class Aoa(Operator):
             return
         theta, tau, spread, quality = chosen
         used = len(csi)
-        std = math.sqrt(spread ** 2 + math.radians(self.params.std_floor_deg) ** 2)
+        std = math.sqrt((self.params.spread_weight * spread) ** 2 + math.radians(self.params.std_floor_deg) ** 2)
         std, quality = self._ambiguity(theta, std, quality, music.center_hz)
         stamps = sorted(s for _, s in usable)
         stamp = stamps[len(stamps) // 2]
@@ -235,7 +236,7 @@ class Aoa(Operator):
         worst = self._worst_correlation(freq_hz)[int(round(math.degrees(theta))) % 360]
         if worst > NEAR_AMBIGUOUS_CORRELATION:
             std *= 1 + 10 * (worst - NEAR_AMBIGUOUS_CORRELATION)
-            quality = max(quality, QUALITY_AMBIGUOUS)
+            quality = quality or QUALITY_AMBIGUOUS
         return std, quality
 
     def _worst_correlation(self, freq_hz: float) -> np.ndarray:

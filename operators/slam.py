@@ -1,0 +1,185 @@
+"""`slam`: the convex sliding-window AoA-IMU SLAM (the paper's Section III), re-solved every epoch.
+
+An epoch is the stamp of an AoA burst for which the preintegration emitted the motion since the
+previous one; the AoAs sharing that stamp are its bearings. Each epoch appends to the window
+(rover.sliding_window), which is re-solved with Clarabel and refined; the oldest epoch then
+leaves the window as final. Outputs: the live pose at every epoch, each epoch's final pose as it
+leaves the window, the path now and then, the tags with their covariance, and solver diagnostics.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rover.messages import header, make
+from rover.operator import Emit, In, Operator, Out
+from rover.sliding_window import Edge, SlidingWindow, WindowSettings
+
+log = logging.getLogger("rover.slam")
+
+PREINTEGRATION_XY = [3, 4, 6, 7]
+"""velocity x/y and position x/y in the Preintegration covariance's [rotation, velocity, position]"""
+COVARIANCE_FLOOR = 1e-12
+
+
+@dataclass(frozen=True)
+class SlamParams(WindowSettings):
+    batch: bool = False
+    """solve the whole run at once at its end (a reference for the sliding window), no live output"""
+    path_every_s: float = 10.0
+    """event time between path messages (the last one, at the end, is complete)"""
+
+
+def yaw_of(q: Any) -> float:
+    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+
+
+def pose_message(stamp: int, x: float, y: float, yaw: float) -> Any:
+    position = make("geometry_msgs/msg/Point", x=x, y=y, z=0.0)
+    orientation = make("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    return make("geometry_msgs/msg/PoseStamped", header=header(stamp, "world"),
+                pose=make("geometry_msgs/msg/Pose", position=position, orientation=orientation))
+
+
+def edge_of(msg: Any) -> Edge:
+    """The x/y odometry of a Preintegration message."""
+    delta = np.array([msg.delta_velocity.x, msg.delta_velocity.y, msg.delta_position.x, msg.delta_position.y])
+    cov = np.asarray(msg.covariance, float).reshape(9, 9)[np.ix_(PREINTEGRATION_XY, PREINTEGRATION_XY)]
+    cov = 0.5 * (cov + cov.T) + np.eye(4) * COVARIANCE_FLOOR
+    return Edge(float(msg.dt), delta, cov)
+
+
+class Slam(Operator):
+    """Robot and tag positions from AoAs and preintegrated IMU motion."""
+
+    inputs = {"aoa": In("rover_msgs/msg/Aoa"), "odometry": In("rover_msgs/msg/Preintegration")}
+    outputs = {
+        "pose": Out("geometry_msgs/msg/PoseStamped", doc="the newest epoch's pose, as estimated at its own time"),
+        "trajectory": Out("geometry_msgs/msg/PoseStamped", doc="each epoch's final pose, when it leaves the window"),
+        "path": Out("nav_msgs/msg/Path", doc="the best path so far (final poses, then the window)"),
+        "tags": Out("rover_msgs/msg/TagArray", doc="every tag heard, with its 2x2 covariance"),
+        "diagnostics": Out("rover_msgs/msg/SlamDiagnostics"),
+    }
+    Params = SlamParams
+
+    def __init__(self, params: SlamParams | None = None):
+        super().__init__(params)
+        settings = {f: getattr(self.params, f) for f in WindowSettings.__dataclass_fields__}
+        if self.params.batch:
+            settings["window"] = 2 ** 31
+        self.window = SlidingWindow(WindowSettings(**settings))
+        self.pending: dict[int, list[Any]] = {}
+        self.channels: dict[int, int] = {}
+        self.dropped: Counter = Counter()
+        self.finals_sent = 0
+        self.last_path_ns: int | None = None
+        self.updates = 0
+        self.failures = 0
+
+    def on_input(self, port: str, msg: Any, stamp_ns: int):
+        if port == "aoa":
+            self._bearing(msg, stamp_ns)
+            return
+        yield from self._odometry(msg, stamp_ns)
+
+    def _bearing(self, msg: Any, stamp: int) -> None:
+        if not (math.isfinite(msg.angle_rad) and math.isfinite(msg.std_rad) and msg.std_rad > 0):
+            self.dropped["AoAs with a non-finite angle or std"] += 1
+            return
+        self.channels[msg.tag_id] = msg.channel
+        self.pending.setdefault(stamp, []).append(msg)
+
+    def _take(self, stamp: int) -> tuple[list[int], np.ndarray, np.ndarray]:
+        """The AoAs at this epoch; older ones that never became an epoch are counted as dropped."""
+        late = [s for s in self.pending if s < stamp]
+        for s in late:
+            self.dropped["AoAs without an IMU epoch"] += len(self.pending.pop(s))
+        msgs = self.pending.pop(stamp, [])
+        return ([m.tag_id for m in msgs], np.array([m.angle_rad for m in msgs]), np.array([m.std_rad for m in msgs]))
+
+    def _odometry(self, msg: Any, stamp: int):
+        start = msg.start.sec * 1_000_000_000 + msg.start.nanosec
+        w = self.window
+        if not w.epochs and not w.finals:
+            ids, angles, stds = self._take(start)
+            w.add_epoch(start, yaw_of(msg.orientation_start), ids, angles, stds, None)
+        elif w.epochs and start != w.epochs[-1].stamp_ns:
+            self.dropped["odometry not continuing the previous epoch (chained anyway)"] += 1
+        if msg.dt <= 0 or not np.isfinite(np.asarray(msg.covariance)).all():
+            self.dropped["odometry with no duration or a non-finite covariance"] += 1
+            return
+        ids, angles, stds = self._take(stamp)
+        w.add_epoch(stamp, yaw_of(msg.orientation), ids, angles, stds, edge_of(msg))
+        if self.params.batch:
+            return
+        yield from self._finals(stamp)
+        yield from self._update(stamp)
+        if self.last_path_ns is None or stamp - self.last_path_ns >= self.params.path_every_s * 1e9:
+            self.last_path_ns = stamp
+            yield Emit("path", self._path(stamp), stamp)
+
+    def _update(self, stamp: int):
+        w = self.window
+        started = time.perf_counter()
+        result = w.update()
+        elapsed = time.perf_counter() - started
+        self.updates += 1
+        if result.failed:
+            self.failures += 1
+            log.debug("%s at %.3f s", result.failed, stamp / 1e9)
+        newest = w.epochs[-1]
+        x, y = w.x[4 * (len(w.epochs) - 1):4 * (len(w.epochs) - 1) + 2]
+        yield Emit("pose", pose_message(newest.stamp_ns, float(x), float(y), newest.yaw), stamp)
+        yield Emit("tags", self._tags(stamp), stamp)
+        yield Emit("diagnostics", make(
+            "rover_msgs/msg/SlamDiagnostics", header=header(stamp, "world"), solve_time_s=elapsed,
+            iterations=result.iterations, window_epochs=len(w.epochs), tags=len(w.tag_ids),
+            huber_active_rows=result.huber_active), stamp)
+
+    def _finals(self, stamp: int):
+        """Poses that left the window since the last call, stamped now on the wire."""
+        for s, x, y, yaw in self.window.finals[self.finals_sent:]:
+            yield Emit("trajectory", pose_message(s, x, y, yaw), stamp)
+        self.finals_sent = len(self.window.finals)
+
+    def _tags(self, stamp: int) -> Any:
+        w = self.window
+        observable = w.observable()
+        tags = []
+        for i, (tag_id, (x, y)) in enumerate(zip(w.tag_ids, w.tag_positions())):
+            cov = np.nan_to_num(w.tag_covariance[i], nan=1e12, posinf=1e12)
+            tags.append(make("rover_msgs/msg/Tag", id=tag_id, channel=self.channels.get(tag_id, 0),
+                             position=make("geometry_msgs/msg/Point", x=float(x), y=float(y), z=0.0),
+                             covariance_xy=cov.ravel().astype(np.float64), observable=bool(observable[i])))
+        return make("rover_msgs/msg/TagArray", header=header(stamp, "world"), tags=tags)
+
+    def _path(self, stamp: int) -> Any:
+        poses = [pose_message(*p) for p in [*self.window.finals, *self.window.poses()]]
+        return make("nav_msgs/msg/Path", header=header(stamp, "world"), poses=poses)
+
+    def on_end(self):
+        w = self.window
+        if not w.epochs:
+            log.warning("slam: no epoch to estimate (no odometry arrived)")
+            return
+        stamp = w.epochs[-1].stamp_ns
+        if self.params.batch:
+            yield from self._update(stamp)
+        yield Emit("path", self._path(stamp), stamp)
+        yield Emit("tags", self._tags(stamp), stamp)
+        w.finals.extend(w.poses())
+        yield from self._finals(stamp)
+        if self.pending:
+            self.dropped["AoAs after the last IMU epoch"] += sum(len(v) for v in self.pending.values())
+        if self.dropped:
+            log.warning("slam: dropped %s", ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items())))
+        if self.failures:
+            log.warning("slam: %d of %d updates did not converge (kept the previous estimate)",
+                        self.failures, self.updates)

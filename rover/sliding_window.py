@@ -1,0 +1,383 @@
+"""The sliding-window AoA-IMU estimator behind the `slam` operator (the paper's Section III).
+
+The state is the robot's position and velocity (x, y, world frame) at each epoch in the window,
+and the position of every tag heard so far. Rotations come from the gyro (the preintegration's
+attitudes), which makes every constraint linear in the state:
+
+- odometry: v_k+1 = v_k + dv,  p_k+1 = p_k + v_k dt + dp, weighted by the preintegration's covariance;
+- AoA: the cross product u x (b - mu) = 0 of the world bearing u and the robot-to-tag vector,
+  divided by d * sigma (d the current robot-tag distance, re-estimated in a few passes), under a
+  Huber loss, with a cheirality hinge u . (b - mu) >= 0 carrying the row's robust weight;
+- a prior on the oldest epoch and the tags: the states that left the window, marginalized by
+  Schur complement (the gauge, the first pose at the origin, starts it).
+
+The cross product is the pseudolinear bearing estimator, biased toward short ranges as the AoA
+noise grows (Dogancay 2004), and reweighting by the current distance feeds that bias. Each update
+therefore ends with Gauss-Newton steps on the true angle residual (atan2) from the convex solution.
+The distances in the weights have a floor (no tag is closer than `min_range_m` to the antennas).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg
+
+from rover.window_program import Shape, SolverFailed, UpdateData, WindowProgram, edge_matrix, prior_indices
+
+
+@dataclass(frozen=True)
+class WindowSettings:
+    window: int = 30
+    """epochs kept in the window; older ones are marginalized into the prior"""
+    huber_sigma: float = 1.5
+    """AoA residuals beyond this many standard deviations count linearly (Huber)"""
+    hinge_weight: float = 10.0
+    """cost per (distance / (d * sigma)) of a tag placed behind its bearing"""
+    reweight_passes: int = 2
+    """convex solves per update, each with the distances of the previous one"""
+    refine_iterations: int = 3
+    """Gauss-Newton steps on the angle residual after the convex passes"""
+    initial_range_m: float = 3.0
+    """the distance guessed for a tag heard for the first time"""
+    min_range_m: float = 0.3
+    """floor of the distances in the AoA weights: no tag sits inside the robot"""
+    tag_prior_std_m: float = 30.0
+    """the prior on a newly heard tag, around its first bearing at `initial_range_m`"""
+    gauge_std_m: float = 1e-3
+    """the first pose is the origin of the world frame"""
+    initial_velocity_std_m_s: float = 1.0
+    observable_std_m: float = 0.5
+    """a tag is reported localized once its position's largest standard deviation is below this"""
+
+
+@dataclass
+class Epoch:
+    stamp_ns: int
+    yaw: float
+    """heading from the gyro (world frame)"""
+    tags: np.ndarray
+    """tag slot of each bearing"""
+    bearing: np.ndarray
+    """world-frame unit vectors (k, 2)"""
+    std: np.ndarray
+    """AoA standard deviations (rad)"""
+
+
+@dataclass
+class Edge:
+    """Odometry from one epoch to the next: [dv, dp] in x/y and their covariance."""
+
+    dt: float
+    delta: np.ndarray
+    covariance: np.ndarray
+
+    @property
+    def chol(self) -> np.ndarray:
+        return np.linalg.cholesky(self.covariance)
+
+
+@dataclass
+class Update:
+    """What one update produced."""
+
+    iterations: int = 0
+    huber_active: int = 0
+    failed: str = ""
+
+
+@dataclass
+class Prior:
+    """0.5 (x - mean)' H (x - mean) + grad' (x - mean) over the oldest epoch and the tags."""
+
+    info: np.ndarray
+    mean: np.ndarray
+    grad: np.ndarray
+
+
+def wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def huber_cost(r: np.ndarray, m: float) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a <= m, a ** 2, 2 * m * a - m ** 2)
+
+
+GN_HINGE_WEIGHT = 1e-6
+"""the Gauss-Newton steps need no cheirality (the angle residual has it); a tiny weight keeps h unique"""
+PV_FROM_VP = [2, 3, 0, 1]
+"""reorders an edge's [dv, dp] (velocity first) to the state's [position, velocity]"""
+
+
+@dataclass
+class SlidingWindow:
+    """Sliding-window estimator: add epochs, read the estimates; the oldest epochs leave as final."""
+
+    settings: WindowSettings = field(default_factory=WindowSettings)
+    epochs: list[Epoch] = field(default_factory=list)
+    edges: list[Edge] = field(default_factory=list)
+    tag_ids: list[int] = field(default_factory=list)
+    x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    prior: Prior | None = None
+    slots: int = 1
+    program: WindowProgram | None = None
+    finals: list[tuple[int, float, float, float]] = field(default_factory=list)
+    """(stamp, x, y, yaw) of the epochs that left the window, in order"""
+    tag_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+
+    @property
+    def shape(self) -> Shape:
+        return Shape(len(self.epochs), self.slots, len(self.tag_ids))
+
+    def tag_positions(self) -> np.ndarray:
+        return self.x[4 * len(self.epochs):].reshape(-1, 2)
+
+    def poses(self) -> list[tuple[int, float, float, float]]:
+        """(stamp, x, y, yaw) of the epochs in the window, oldest first."""
+        return [(e.stamp_ns, float(self.x[4 * k]), float(self.x[4 * k + 1]), e.yaw) for k, e in enumerate(self.epochs)]
+
+    def add_epoch(self, stamp_ns: int, yaw: float, tag_ids: list[int], angles_rad: np.ndarray,
+                  stds_rad: np.ndarray, edge: Edge | None) -> None:
+        """Append an epoch: the robot-frame AoAs seen there and the odometry from the previous epoch."""
+        s = self.settings
+        direction = yaw + np.asarray(angles_rad, float)
+        bearing = np.stack([np.cos(direction), np.sin(direction)], axis=1).reshape(-1, 2)
+        if not self.epochs:
+            state = np.zeros(4)
+            if self.prior is None:
+                self.prior = Prior(np.diag([s.gauge_std_m ** -2] * 2 + [s.initial_velocity_std_m_s ** -2] * 2),
+                                   np.zeros(4), np.zeros(4))
+        else:
+            if edge is None:
+                raise ValueError("an epoch after the first needs its odometry edge")
+            last = self.x[4 * (len(self.epochs) - 1):4 * len(self.epochs)]
+            state = np.concatenate([last[0:2] + last[2:4] * edge.dt + edge.delta[2:4], last[2:4] + edge.delta[0:2]])
+            self.edges.append(edge)
+        tags = self.tag_positions()
+        slots = []
+        for tag_id, u in zip(tag_ids, bearing):
+            if tag_id not in self.tag_ids:
+                guess = state[0:2] + s.initial_range_m * u
+                self._add_tag(tag_id, guess)
+                tags = np.vstack([tags, guess])
+            slots.append(self.tag_ids.index(tag_id))
+        self.x = np.concatenate([self.x[:4 * len(self.epochs)], state, tags.ravel()])
+        self.epochs.append(Epoch(stamp_ns, yaw, np.array(slots, dtype=int), bearing, np.asarray(stds_rad, float)))
+        if len(self.epochs) > s.window:
+            self._marginalize_oldest()
+        self.slots = max(len(e.tags) for e in self.epochs) or 1
+
+    def _add_tag(self, tag_id: int, guess: np.ndarray) -> None:
+        self.tag_ids.append(tag_id)
+        p = self.prior
+        n = len(p.mean)
+        info = np.zeros((n + 2, n + 2))
+        info[:n, :n] = p.info
+        info[n:, n:] = np.eye(2) * self.settings.tag_prior_std_m ** -2
+        self.prior = Prior(info, np.concatenate([p.mean, guess]), np.concatenate([p.grad, np.zeros(2)]))
+
+    # -- the model ------------------------------------------------------------------------------
+
+    def _rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per slot: epoch index, tag slot (-1 when empty), world bearing (2), std, filled flag."""
+        shape = self.shape
+        epoch = np.repeat(np.arange(shape.epochs), shape.slots)
+        tag = np.full(shape.rows, -1)
+        bearing = np.zeros((shape.rows, 2))
+        std = np.ones(shape.rows)
+        for k, e in enumerate(self.epochs):
+            at = slice(k * shape.slots, k * shape.slots + len(e.tags))
+            tag[at], bearing[at], std[at] = e.tags, e.bearing, e.std
+        return epoch, tag, bearing, std, tag >= 0
+
+    def _offsets(self, x: np.ndarray, epoch: np.ndarray, tag: np.ndarray) -> np.ndarray:
+        """Robot-to-tag vectors b - mu per slot."""
+        e = len(self.epochs)
+        return x[4 * e:].reshape(-1, 2)[np.maximum(tag, 0)] - x[:4 * e].reshape(-1, 4)[epoch, 0:2]
+
+    def _slot_coefficients(self, tag_part: np.ndarray, tag: np.ndarray) -> np.ndarray:
+        """Row coefficients at the program's columns: -v on the epoch's position, +v on its tag's."""
+        shape = self.shape
+        out = np.zeros((shape.rows, 2 + 2 * shape.tags))
+        out[:, 0:2] = -tag_part
+        rows = np.nonzero(tag >= 0)[0]
+        out[rows, 2 + 2 * tag[rows]] = tag_part[rows, 0]
+        out[rows, 3 + 2 * tag[rows]] = tag_part[rows, 1]
+        return out
+
+    def _angles(self, x, epoch, tag, bearing, std, filled) -> tuple[np.ndarray, np.ndarray]:
+        """Angle residuals in std units and their gradients with respect to the tag position."""
+        delta = self._offsets(x, epoch, tag)
+        range2 = np.maximum(np.sum(delta ** 2, axis=1), self.settings.min_range_m ** 2)
+        predicted = np.arctan2(delta[:, 1], delta[:, 0])
+        measured = np.arctan2(bearing[:, 1], bearing[:, 0])
+        residual = np.where(filled, wrap(predicted - measured) / std, 0.0)
+        jb = np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * std)[:, None]
+        return residual, np.where(filled[:, None], jb, 0.0)
+
+    def _odometry_cost(self, x: np.ndarray) -> float:
+        if not self.edges:
+            return 0.0
+        l = edge_matrix(np.array([e.dt for e in self.edges]))
+        pairs = np.stack([x[4 * k:4 * k + 8] for k in range(len(self.edges))])
+        r = np.einsum("nij,nj->ni", l, pairs) - np.stack([e.delta for e in self.edges])
+        white = np.linalg.solve(np.stack([e.chol for e in self.edges]), r[:, :, None])
+        return 0.5 * float(np.sum(white ** 2))
+
+    def _cost(self, x: np.ndarray, residual: np.ndarray) -> float:
+        p = self.prior
+        d = x[prior_indices(self.shape)] - p.mean
+        return (self._odometry_cost(x) + 0.5 * float(d @ p.info @ d) + float(p.grad @ d)
+                + 0.5 * float(huber_cost(residual, self.settings.huber_sigma).sum()))
+
+    # -- one update -----------------------------------------------------------------------------
+
+    def update(self) -> Update:
+        """Re-solve the window: convex passes with reweighted distances, then Gauss-Newton on angles."""
+        s = self.settings
+        shape = self.shape
+        if self.program is None or self.program.shape != shape:
+            self.program = WindowProgram(shape)
+        p = self.prior
+        c = np.zeros(shape.states)
+        c[prior_indices(shape)] = p.info @ p.mean - p.grad
+        base = dict(prior_info=p.info, c=c, edge_l=edge_matrix(np.array([e.dt for e in self.edges])),
+                    edge_chol=np.stack([e.chol for e in self.edges]) if self.edges else np.zeros((0, 4, 4)),
+                    edge_delta=np.stack([e.delta for e in self.edges]) if self.edges else np.zeros((0, 4)),
+                    huber_m=s.huber_sigma)
+        epoch, tag, bearing, std, filled = self._rows()
+        perp = np.stack([-bearing[:, 1], bearing[:, 0]], axis=1)
+        zeros_g = np.zeros((shape.rows, 2 + 2 * shape.tags))
+        result = Update()
+        x = self.x.copy()
+        weight = np.ones(shape.rows)
+        try:
+            for _ in range(s.reweight_passes):
+                d = np.maximum(np.linalg.norm(self._offsets(x, epoch, tag), axis=1), s.min_range_m)
+                scale = np.where(filled, 1.0 / (d * std), 0.0)
+                x, iterations = self.program.solve(UpdateData(
+                    **base, a=self._slot_coefficients(perp * scale[:, None], tag), offset=np.zeros(shape.rows),
+                    g=self._slot_coefficients(bearing * scale[:, None], tag), hinge=s.hinge_weight * weight))
+                result.iterations += iterations
+                r = np.einsum("ij,ij->i", perp, self._offsets(x, epoch, tag)) * scale
+                weight = np.minimum(1.0, s.huber_sigma / np.maximum(np.abs(r), 1e-12))
+            residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
+            cost = self._cost(x, residual[filled])
+            for _ in range(s.refine_iterations):
+                trial, iterations = self.program.solve(UpdateData(
+                    **base, a=self._slot_coefficients(jb, tag), offset=residual, g=zeros_g,
+                    hinge=np.full(shape.rows, GN_HINGE_WEIGHT)))
+                result.iterations += iterations
+                res_t, jb_t = self._angles(trial, epoch, tag, bearing, std, filled)
+                cost_t = self._cost(trial, res_t[filled])
+                if cost_t > cost:
+                    break
+                converged = np.max(np.abs(trial - x)) < 1e-5
+                x, residual, jb, cost = trial, res_t, jb_t, cost_t
+                if converged:
+                    break
+        except SolverFailed as exc:
+            result.failed = str(exc)
+            if not np.all(np.isfinite(x)):
+                x = self.x.copy()
+        residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
+        result.huber_active = int(np.sum(np.abs(residual[filled]) > s.huber_sigma))
+        self.x = x
+        self._covariances(epoch, tag, residual, jb, filled)
+        return result
+
+    def _information(self, epoch, tag, residual, jb, filled) -> sp.csc_matrix:
+        """The Gauss-Newton information of the window at the estimate (Huber rows IRLS-weighted)."""
+        shape = self.shape
+        m = self.settings.huber_sigma
+        w = np.where(filled, np.minimum(1.0, m / np.maximum(np.abs(residual), 1e-12)), 0.0)
+        pri = prior_indices(shape)
+        rows = [np.repeat(pri, len(pri))]
+        cols = [np.tile(pri, len(pri))]
+        vals = [self.prior.info.ravel()]
+        if self.edges:
+            l = edge_matrix(np.array([e.dt for e in self.edges]))
+            weight = np.linalg.inv(np.stack([e.covariance for e in self.edges]))
+            blocks = np.einsum("nji,njk,nkl->nil", l, weight, l)
+            idx = 4 * np.arange(len(self.edges))[:, None] + np.arange(8)
+            rows.append(np.repeat(idx[:, :, None], 8, axis=2).ravel())
+            cols.append(np.repeat(idx[:, None, :], 8, axis=1).ravel())
+            vals.append(blocks.ravel())
+        coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
+        cols_slot = np.concatenate([4 * epoch[:, None] + np.arange(2),
+                                    np.broadcast_to(4 * shape.epochs + np.arange(2 * shape.tags),
+                                                    (shape.rows, 2 * shape.tags))], axis=1)
+        outer = coeff[:, :, None] * coeff[:, None, :]
+        rows.append(np.repeat(cols_slot[:, :, None], cols_slot.shape[1], axis=2).ravel())
+        cols.append(np.repeat(cols_slot[:, None, :], cols_slot.shape[1], axis=1).ravel())
+        vals.append(outer.ravel())
+        return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(shape.states, shape.states))
+
+    def _covariances(self, epoch, tag, residual, jb, filled) -> None:
+        nt = len(self.tag_ids)
+        e = 4 * len(self.epochs)
+        info = self._information(epoch, tag, residual, jb, filled)
+        rhs = np.zeros((info.shape[0], 2 * nt))
+        rhs[e:, :] = np.eye(2 * nt)
+        try:
+            cov = scipy.sparse.linalg.splu(info).solve(rhs)[e:]
+        except RuntimeError:
+            cov = np.full((2 * nt, 2 * nt), np.inf)
+        self.tag_covariance = np.stack([cov[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
+
+    def observable(self) -> np.ndarray:
+        """Per tag: localized well enough to report (largest std below `observable_std_m`)."""
+        if len(self.tag_covariance) == 0:
+            return np.zeros(0, bool)
+        cov = np.nan_to_num(self.tag_covariance, nan=1e12, posinf=1e12)
+        worst = np.linalg.eigvalsh(0.5 * (cov + cov.transpose(0, 2, 1)))[:, -1]
+        return np.sqrt(np.maximum(worst, 0)) <= self.settings.observable_std_m
+
+    # -- marginalization ------------------------------------------------------------------------
+
+    def _marginalize_oldest(self) -> None:
+        """Fold the oldest epoch into the prior: its Gaussian (prior and bearings, linearized at the
+        estimate) carried through the odometry edge onto the next epoch, in covariance form (the
+        edge is far more precise than anything else, which information form would square)."""
+        s = self.settings
+        old, edge = self.epochs[0], self.edges[0]
+        e = len(self.epochs)
+        nt = len(self.tag_ids)
+        x = self.x
+        own = np.concatenate([np.arange(4), 4 * e + np.arange(2 * nt)])
+        p = self.prior
+        info = p.info.copy()
+        grad = p.info @ (x[own] - p.mean) + p.grad
+        if len(old.tags):
+            delta = x[4 * e:].reshape(-1, 2)[old.tags] - x[0:2]
+            range2 = np.maximum(np.sum(delta ** 2, axis=1), s.min_range_m ** 2)
+            measured = np.arctan2(old.bearing[:, 1], old.bearing[:, 0])
+            r = wrap(np.arctan2(delta[:, 1], delta[:, 0]) - measured) / old.std
+            w = np.minimum(1.0, s.huber_sigma / np.maximum(np.abs(r), 1e-12))
+            jb = np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * old.std)[:, None]
+            for j, t in enumerate(old.tags):
+                cols = np.concatenate([[0, 1], 4 + 2 * t + np.arange(2)])
+                row = np.concatenate([-jb[j], jb[j]])
+                info[np.ix_(cols, cols)] += w[j] * np.outer(row, row)
+                grad[cols] += w[j] * row * r[j]
+        cov = np.linalg.inv(info)
+        mean = x[own] - cov @ grad
+        transfer = np.eye(4)
+        transfer[0:2, 2:4] = edge.dt * np.eye(2)
+        jac = np.eye(4 + 2 * nt)
+        jac[:4, :4] = transfer
+        new_cov = jac @ cov @ jac.T
+        new_cov[:4, :4] += edge.covariance[np.ix_(PV_FROM_VP, PV_FROM_VP)]
+        new_mean = jac @ mean
+        new_mean[:4] += edge.delta[PV_FROM_VP]
+        new_info = np.linalg.inv(new_cov)
+        self.prior = Prior(0.5 * (new_info + new_info.T), new_mean, np.zeros(4 + 2 * nt))
+        self.finals.append((old.stamp_ns, float(x[0]), float(x[1]), old.yaw))
+        self.epochs.pop(0)
+        self.edges.pop(0)
+        self.x = x[4:].copy()
