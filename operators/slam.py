@@ -35,6 +35,10 @@ class SlamParams(WindowSettings):
     """solve the whole run at once at its end (a reference for the sliding window), no live output"""
     path_every_s: float = 10.0
     """event time between path messages (the last one, at the end, is complete)"""
+    wheel: bool = True
+    """fuse the wheel odometry when the input is wired and carries data"""
+    wheel_max_age_s: float = 0.2
+    """a wheel speed older than this at an epoch is not used"""
 
 
 def yaw_of(q: Any) -> float:
@@ -59,7 +63,9 @@ def edge_of(msg: Any) -> Edge:
 class Slam(Operator):
     """Robot and tag positions from AoAs and preintegrated IMU motion."""
 
-    inputs = {"aoa": In("rover_msgs/msg/Aoa"), "odometry": In("rover_msgs/msg/Preintegration")}
+    inputs = {"aoa": In("rover_msgs/msg/Aoa"), "odometry": In("rover_msgs/msg/Preintegration"),
+              "wheel": In("nav_msgs/msg/Odometry", required=False,
+                          doc="wheel odometry: forward speed and no sideways motion (fused when `wheel` is on)")}
     outputs = {
         "pose": Out("geometry_msgs/msg/PoseStamped", doc="the newest epoch's pose, as estimated at its own time"),
         "trajectory": Out("geometry_msgs/msg/PoseStamped", doc="each epoch's final pose, when it leaves the window"),
@@ -80,12 +86,20 @@ class Slam(Operator):
         self.dropped: Counter = Counter()
         self.finals_sent = 0
         self.last_path_ns: int | None = None
+        self.speed: tuple[int, float] | None = None
         self.updates = 0
         self.failures = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "aoa":
             self._bearing(msg, stamp_ns)
+            return
+        if port == "wheel":
+            speed = msg.twist.twist.linear.x
+            if math.isfinite(speed):
+                self.speed = (stamp_ns, speed)
+            else:
+                self.dropped["wheel odometry with a non-finite speed"] += 1
             return
         yield from self._odometry(msg, stamp_ns)
 
@@ -116,7 +130,7 @@ class Slam(Operator):
             self.dropped["odometry with no duration or a non-finite covariance"] += 1
             return
         ids, angles, stds = self._take(stamp)
-        w.add_epoch(stamp, yaw_of(msg.orientation), ids, angles, stds, edge_of(msg))
+        w.add_epoch(stamp, yaw_of(msg.orientation), ids, angles, stds, edge_of(msg), self._speed_at(stamp))
         if self.params.batch:
             return
         yield from self._finals(stamp)
@@ -124,6 +138,11 @@ class Slam(Operator):
         if self.last_path_ns is None or stamp - self.last_path_ns >= self.params.path_every_s * 1e9:
             self.last_path_ns = stamp
             yield Emit("path", self._path(stamp), stamp)
+
+    def _speed_at(self, stamp: int) -> float | None:
+        if not self.params.wheel or self.speed is None:
+            return None
+        return self.speed[1] if stamp - self.speed[0] <= self.params.wheel_max_age_s * 1e9 else None
 
     def _update(self, stamp: int):
         w = self.window

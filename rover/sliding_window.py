@@ -49,7 +49,14 @@ class WindowSettings:
     """the prior on a newly heard tag, around its first bearing at `initial_range_m`"""
     gauge_std_m: float = 1e-3
     """the first pose is the origin of the world frame"""
-    initial_velocity_std_m_s: float = 1.0
+    initial_velocity_std_m_s: float = 0.01
+    """the robot starts from rest (the preintegration needs a still start for its gyro bias)"""
+    wheel_speed_std_m_s: float = 0.01
+    """wheel odometry speed noise"""
+    wheel_scale_std: float = 0.03
+    """wheel radius error, as a fraction of the speed"""
+    lateral_std_m_s: float = 0.02
+    """the non-holonomic constraint: how fast the robot may slip sideways"""
     observable_std_m: float = 0.5
     """a tag is reported localized once its position's largest standard deviation is below this"""
 
@@ -65,6 +72,9 @@ class Epoch:
     """world-frame unit vectors (k, 2)"""
     std: np.ndarray
     """AoA standard deviations (rad)"""
+    velocity_info: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    """wheel odometry on this epoch's velocity: 0.5 v'Wv - w'v"""
+    velocity_linear: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
 
 @dataclass
@@ -141,8 +151,9 @@ class SlidingWindow:
         return [(e.stamp_ns, float(self.x[4 * k]), float(self.x[4 * k + 1]), e.yaw) for k, e in enumerate(self.epochs)]
 
     def add_epoch(self, stamp_ns: int, yaw: float, tag_ids: list[int], angles_rad: np.ndarray,
-                  stds_rad: np.ndarray, edge: Edge | None) -> None:
-        """Append an epoch: the robot-frame AoAs seen there and the odometry from the previous epoch."""
+                  stds_rad: np.ndarray, edge: Edge | None, speed_m_s: float | None = None) -> None:
+        """Append an epoch: the robot-frame AoAs seen there, the odometry from the previous epoch and,
+        when there is wheel odometry, the forward speed (with no sideways motion: non-holonomic)."""
         s = self.settings
         direction = yaw + np.asarray(angles_rad, float)
         bearing = np.stack([np.cos(direction), np.sin(direction)], axis=1).reshape(-1, 2)
@@ -166,7 +177,13 @@ class SlidingWindow:
                 tags = np.vstack([tags, guess])
             slots.append(self.tag_ids.index(tag_id))
         self.x = np.concatenate([self.x[:4 * len(self.epochs)], state, tags.ravel()])
-        self.epochs.append(Epoch(stamp_ns, yaw, np.array(slots, dtype=int), bearing, np.asarray(stds_rad, float)))
+        epoch = Epoch(stamp_ns, yaw, np.array(slots, dtype=int), bearing, np.asarray(stds_rad, float))
+        if speed_m_s is not None:
+            forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+            var = s.wheel_speed_std_m_s ** 2 + (s.wheel_scale_std * speed_m_s) ** 2
+            epoch.velocity_info = np.outer(forward, forward) / var + np.outer(side, side) / s.lateral_std_m_s ** 2
+            epoch.velocity_linear = forward * speed_m_s / var
+        self.epochs.append(epoch)
         if len(self.epochs) > s.window:
             self._marginalize_oldest()
         self.slots = max(len(e.tags) for e in self.epochs) or 1
@@ -228,10 +245,16 @@ class SlidingWindow:
         white = np.linalg.solve(np.stack([e.chol for e in self.edges]), r[:, :, None])
         return 0.5 * float(np.sum(white ** 2))
 
+    def _wheel_cost(self, x: np.ndarray) -> float:
+        v = x[:4 * len(self.epochs)].reshape(-1, 4)[:, 2:4]
+        info = np.stack([e.velocity_info for e in self.epochs])
+        linear = np.stack([e.velocity_linear for e in self.epochs])
+        return float(0.5 * np.einsum("ni,nij,nj->", v, info, v) - np.sum(linear * v))
+
     def _cost(self, x: np.ndarray, residual: np.ndarray) -> float:
         p = self.prior
         d = x[prior_indices(self.shape)] - p.mean
-        return (self._odometry_cost(x) + 0.5 * float(d @ p.info @ d) + float(p.grad @ d)
+        return (self._odometry_cost(x) + self._wheel_cost(x) + 0.5 * float(d @ p.info @ d) + float(p.grad @ d)
                 + 0.5 * float(huber_cost(residual, self.settings.huber_sigma).sum()))
 
     # -- one update -----------------------------------------------------------------------------
@@ -245,7 +268,8 @@ class SlidingWindow:
         p = self.prior
         c = np.zeros(shape.states)
         c[prior_indices(shape)] = p.info @ p.mean - p.grad
-        base = dict(prior_info=p.info, c=c, edge_l=edge_matrix(np.array([e.dt for e in self.edges])),
+        c[:4 * shape.epochs].reshape(-1, 4)[:, 2:4] += np.stack([e.velocity_linear for e in self.epochs])
+        base = dict(prior_info=p.info, velocity_info=np.stack([e.velocity_info for e in self.epochs]), c=c, edge_l=edge_matrix(np.array([e.dt for e in self.edges])),
                     edge_chol=np.stack([e.chol for e in self.edges]) if self.edges else np.zeros((0, 4, 4)),
                     edge_delta=np.stack([e.delta for e in self.edges]) if self.edges else np.zeros((0, 4)),
                     huber_m=s.huber_sigma)
@@ -267,6 +291,10 @@ class SlidingWindow:
                 weight = np.minimum(1.0, s.huber_sigma / np.maximum(np.abs(r), 1e-12))
             residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
             cost = self._cost(x, residual[filled])
+            res_p, jb_p = self._angles(self.x, epoch, tag, bearing, std, filled)
+            cost_p = self._cost(self.x, res_p[filled])
+            if cost_p < cost:
+                x, residual, jb, cost = self.x.copy(), res_p, jb_p, cost_p
             for _ in range(s.refine_iterations):
                 trial, iterations = self.program.solve(UpdateData(
                     **base, a=self._slot_coefficients(jb, tag), offset=residual, g=zeros_g,
@@ -307,6 +335,10 @@ class SlidingWindow:
             rows.append(np.repeat(idx[:, :, None], 8, axis=2).ravel())
             cols.append(np.repeat(idx[:, None, :], 8, axis=1).ravel())
             vals.append(blocks.ravel())
+        vel = 4 * np.arange(shape.epochs)[:, None] + np.array([2, 3])
+        rows.append(np.repeat(vel[:, :, None], 2, axis=2).ravel())
+        cols.append(np.repeat(vel[:, None, :], 2, axis=1).ravel())
+        vals.append(np.stack([e.velocity_info for e in self.epochs]).ravel())
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
         cols_slot = np.concatenate([4 * epoch[:, None] + np.arange(2),
                                     np.broadcast_to(4 * shape.epochs + np.arange(2 * shape.tags),
@@ -353,6 +385,8 @@ class SlidingWindow:
         p = self.prior
         info = p.info.copy()
         grad = p.info @ (x[own] - p.mean) + p.grad
+        info[2:4, 2:4] += old.velocity_info
+        grad[2:4] += old.velocity_info @ x[2:4] - old.velocity_linear
         if len(old.tags):
             delta = x[4 * e:].reshape(-1, 2)[old.tags] - x[0:2]
             range2 = np.maximum(np.sum(delta ** 2, axis=1), s.min_range_m ** 2)

@@ -106,6 +106,8 @@ class UpdateData:
 
     prior_info: np.ndarray
     """H over prior_indices"""
+    velocity_info: np.ndarray
+    """(epochs, 2, 2) information on each epoch's velocity (wheel odometry; zero without)"""
     c: np.ndarray
     """linear term over all states"""
     edge_l: np.ndarray
@@ -138,9 +140,12 @@ class WindowProgram:
         pri = prior_indices(shape)
         upper = pri[:, None] <= pri[None, :]
         self.prior_upper = upper.ravel()
-        p_rows = np.concatenate([np.repeat(pri, len(pri))[self.prior_upper], self.rho0 + np.arange(4 * ne),
+        vel = 4 * np.arange(shape.epochs)[:, None] + 2
+        vel_rows = np.concatenate([vel, vel, vel + 1], axis=1).ravel()
+        vel_cols = np.concatenate([vel, vel + 1, vel + 1], axis=1).ravel()
+        p_rows = np.concatenate([np.repeat(pri, len(pri))[self.prior_upper], vel_rows, self.rho0 + np.arange(4 * ne),
                                  self.n0 + np.arange(r)])
-        p_cols = np.concatenate([np.tile(pri, len(pri))[self.prior_upper], self.rho0 + np.arange(4 * ne),
+        p_cols = np.concatenate([np.tile(pri, len(pri))[self.prior_upper], vel_cols, self.rho0 + np.arange(4 * ne),
                                  self.n0 + np.arange(r)])
         self.p_pattern = FixedPattern(p_rows, p_cols, (self.nz, self.nz))
         self.p_tail = np.ones(4 * ne + r)
@@ -174,7 +179,9 @@ class WindowProgram:
     def solve(self, d: UpdateData) -> tuple[np.ndarray, int]:
         """Minimize for one update; returns the states x and the iteration count."""
         r = self.shape.rows
-        p = self.p_pattern.data(np.concatenate([d.prior_info.ravel()[self.prior_upper], self.p_tail]))
+        vi = d.velocity_info
+        velocity = np.stack([vi[:, 0, 0], vi[:, 0, 1], vi[:, 1, 1]], axis=1).ravel()
+        p = self.p_pattern.data(np.concatenate([d.prior_info.ravel()[self.prior_upper], velocity, self.p_tail]))
         q = np.concatenate([-d.c, np.zeros(self.n0 - self.rho0 + r), np.full(r, d.huber_m), d.hinge])
         li, lj = self.l_index
         l_values = d.edge_l[:, li, lj]
