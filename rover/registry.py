@@ -13,6 +13,7 @@ BUILTINS: dict[str, str] = {
     "csi_decode": "rover.operators.csi_decode:CsiDecode",
     "aoa": "rover.operators.aoa:Aoa",
     "preintegration": "rover.operators.preintegration:Preintegration",
+    "slam": "rover.operators.slam:Slam",
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
     "csi_file": "rover.drivers.csi_file:CsiFile",

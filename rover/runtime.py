@@ -249,11 +249,12 @@ class OperatorTask(Task):
 
 def _plausible_cdr(payload: bytes, typename: str, stamp: int) -> bool:
     """Cheap check for pass-through ports that never decode: a CDR encapsulation header and, for
-    types with a header, the header stamp the producer also put in the attachment."""
+    types with a header, a header stamp no later than the event time in the attachment (an output
+    may carry an older header, as SLAM's final poses do when they leave the window)."""
     if len(payload) < 4 or payload[:2] not in (b"\x00\x00", b"\x00\x01") or typename not in _KNOWN:
         return False
     if has_header(typename):
-        return len(payload) >= 16 and cdr_stamp_ns(payload) == stamp
+        return len(payload) >= 16 and cdr_stamp_ns(payload) <= stamp
     return True
 
 

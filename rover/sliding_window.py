@@ -214,7 +214,10 @@ class SlidingWindow:
     def _offsets(self, x: np.ndarray, epoch: np.ndarray, tag: np.ndarray) -> np.ndarray:
         """Robot-to-tag vectors b - mu per slot."""
         e = len(self.epochs)
-        return x[4 * e:].reshape(-1, 2)[np.maximum(tag, 0)] - x[:4 * e].reshape(-1, 4)[epoch, 0:2]
+        tags = x[4 * e:].reshape(-1, 2)
+        if len(tags) == 0:
+            return np.zeros((len(epoch), 2))
+        return tags[np.maximum(tag, 0)] - x[:4 * e].reshape(-1, 4)[epoch, 0:2]
 
     def _slot_coefficients(self, tag_part: np.ndarray, tag: np.ndarray) -> np.ndarray:
         """Row coefficients at the program's columns: -v on the epoch's position, +v on its tag's."""
@@ -360,7 +363,7 @@ class SlidingWindow:
             cov = scipy.sparse.linalg.splu(info).solve(rhs)[e:]
         except RuntimeError:
             cov = np.full((2 * nt, 2 * nt), np.inf)
-        self.tag_covariance = np.stack([cov[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
+        self.tag_covariance = np.array([cov[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`)."""
