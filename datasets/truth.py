@@ -67,19 +67,55 @@ def read_tags_csv(path: str | Path) -> list[TruthTag]:
     """Read `id,channel,x,y,z,nlos` (nlos optional, 0/1)."""
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            missing = [c for c in TAG_COLUMNS[:5] if c not in (reader.fieldnames or [])]
-            if missing:
-                raise BadInput(f"{path}:1: missing column(s) {', '.join(missing)} (expected {','.join(TAG_COLUMNS)})")
-            tags = []
-            for row in reader:
-                try:
-                    tags.append(TruthTag(int(row["id"]), int(row["channel"]),
-                                         (float(row["x"]), float(row["y"]), float(row["z"])),
-                                         bool(int(row.get("nlos") or 0))))
-                except (TypeError, ValueError):
-                    raise BadInput(f"{path}:{reader.line_num}: bad tag row {row}") from None
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
+    return parse_tags_csv(text, str(path))
+
+
+def parse_tags_csv(text: str, source: str) -> list[TruthTag]:
+    """The tag truth CSV from text (as a dataset's `rover.truth` metadata carries it)."""
+    reader = csv.DictReader(text.splitlines())
+    missing = [c for c in TAG_COLUMNS[:5] if c not in (reader.fieldnames or [])]
+    if missing:
+        raise BadInput(f"{source}:1: missing column(s) {', '.join(missing)} (expected {','.join(TAG_COLUMNS)})")
+    tags = []
+    for row in reader:
+        try:
+            tags.append(TruthTag(int(row["id"]), int(row["channel"]), (float(row["x"]), float(row["y"]), float(row["z"])),
+                                 bool(int(row.get("nlos") or 0))))
+        except (TypeError, ValueError):
+            raise BadInput(f"{source}:{reader.line_num}: bad tag row {row}") from None
     return tags
+
+
+def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthTag]]:
+    """The ground truth a dataset carries: `/groundtruth/pose` and the tags (metadata `rover.truth`,
+    else `/groundtruth/tags`); (None, []) when it has none."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    from rover.messages import deserialize
+
+    path = Path(path)
+    stamps, xyz, quat, tags = [], [], [], []
+    try:
+        with path.open("rb") as f:
+            reader = make_reader(f)
+            meta = {m.name: m.metadata for m in reader.iter_metadata()}
+            for schema, channel, message in reader.iter_messages(topics=["/groundtruth/pose", "/groundtruth/tags"]):
+                msg = deserialize(message.data, schema.name)
+                if channel.topic == "/groundtruth/tags":
+                    tags = [TruthTag(t.id, t.channel, (t.position.x, t.position.y, t.position.z), False)
+                            for t in msg.tags]
+                    continue
+                p, q = msg.pose.position, msg.pose.orientation
+                stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+                xyz.append((p.x, p.y, p.z))
+                quat.append((q.x, q.y, q.z, q.w))
+    except (OSError, McapError) as exc:
+        raise BadInput(f"{path}: cannot read the dataset's ground truth: {exc}") from None
+    if "tags_csv" in meta.get("rover.truth", {}):
+        tags = parse_tags_csv(meta["rover.truth"]["tags_csv"], f"{path} (metadata rover.truth)")
+    trajectory = Trajectory(np.array(stamps, dtype=np.int64), np.array(xyz), np.array(quat)) if stamps else None
+    return trajectory, tags

@@ -1,0 +1,182 @@
+"""SLAM accuracy and latency on the simulated `paper` scenario, several seeds.
+
+The front end (replay, sweep, decode, AoA, preintegration) runs once per seed through the real
+pipeline; the `slam` operator is then re-run on its recorded AoAs and preintegrations for each
+variant: the paper's formulation (AoA + IMU only), with wheel odometry (the default), and the
+full batch of the whole run. Latency: per-update solve time, every pass included, for several
+window sizes. Goals (issue 6): robot mean <= 20 cm, LOS tags <= 35 cm, NLOS tag <= 80 cm;
+latency median <= 5 ms and p99 <= 20 ms with the default window (30 epochs, 4 tags).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+
+from rover.datasets.truth import read_dataset_truth
+from rover.evaluation import Poses2D, trajectory_errors, yaw_from_quaternion
+from rover.messages import deserialize
+from rover.operators.slam import Slam, SlamParams
+
+PAPER = {"robot_mean_m": 0.393, "los_tags_mean_m": 0.746, "nlos_tag_m": 1.459}
+PORTS = {"/rover/aoa": "aoa", "/rover/preintegration": "odometry", "/odom": "wheel"}
+ORDER = {"/rover/aoa": 0, "/rover/preintegration": 1, "/odom": 2}
+
+
+def read(path: Path, topics: list[str]) -> list[tuple[str, int, object]]:
+    with path.open("rb") as f:
+        return [(ch.topic, m.log_time, deserialize(m.data, s.name))
+                for s, ch, m in make_reader(f).iter_messages(topics=topics)]
+
+
+def stamp_of(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def poses(msgs) -> Poses2D:
+    q = [m.pose.orientation for m in msgs]
+    return Poses2D(np.array([stamp_of(m) for m in msgs], dtype=np.int64),
+                   np.array([[m.pose.position.x, m.pose.position.y] for m in msgs]).reshape(-1, 2),
+                   yaw_from_quaternion(*(np.array([getattr(o, k) for o in q]) for k in "xyzw")))
+
+
+def front_end(dataset: Path, out: Path) -> Path:
+    proc = subprocess.run([sys.executable, "-m", "rover.cli", "-q", "run", "--dataset", str(dataset),
+                           "--output", str(out)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"rover run failed: {proc.stderr.strip()}")
+    return out / "results.mcap"
+
+
+def inputs(results: Path, dataset: Path) -> list[tuple[str, int, object]]:
+    items = read(results, ["/rover/aoa", "/rover/preintegration"]) + read(dataset, ["/odom"])
+    return sorted(items, key=lambda i: (i[1], ORDER[i[0]]))
+
+
+def run_slam(items, params: SlamParams, limit_epochs: int | None = None) -> tuple[list, float]:
+    op = Slam(params)
+    out, epochs = [], 0
+    start = time.process_time()
+    for topic, stamp, msg in items:
+        if limit_epochs is not None and topic == "/rover/preintegration":
+            epochs += 1
+            if epochs > limit_epochs:
+                break
+        out += op.on_input(PORTS[topic], msg, stamp)
+    out += op.on_end()
+    return out, time.process_time() - start
+
+
+def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
+    final = poses([e.msg for e in out if e.port == "trajectory"])
+    live = poses([e.msg for e in out if e.port == "pose"])
+    errors = trajectory_errors(truth, final)
+    live_errors = trajectory_errors(truth, live)
+    arrays = [e.msg for e in out if e.port == "tags"]
+    t0 = final.stamp_ns[0]
+    tags = {}
+    for tag in arrays[-1].tags:
+        where = errors.to_start.apply(np.array([truth_tags[tag.id]]))[0]
+        heard = next(stamp_of(a) for a in arrays if any(t.id == tag.id for t in a.tags))
+        localized = next((stamp_of(a) for a in arrays if any(t.id == tag.id and t.observable for t in a.tags)), None)
+        tags[tag.id] = {"error_m": float(math.hypot(tag.position.x - where[0], tag.position.y - where[1])),
+                        "nlos": tag.id in nlos, "observable": bool(tag.observable),
+                        "first_heard_s": (heard - t0) / 1e9,
+                        "first_localized_s": None if localized is None else (localized - t0) / 1e9}
+    los = [t["error_m"] for t in tags.values() if not t["nlos"]]
+    nl = [t["error_m"] for t in tags.values() if t["nlos"]]
+    diag = np.array([e.msg.solve_time_s for e in out if e.port == "diagnostics"]) * 1e3
+    return {"robot_mean_m": errors.unaligned["mean_m"], "robot_median_m": errors.unaligned["median_m"],
+            "robot_live_mean_m": live_errors.unaligned["mean_m"], "robot_aligned_mean_m": errors.aligned["mean_m"],
+            "los_tags_mean_m": float(np.mean(los)) if los else None,
+            "nlos_tag_m": float(np.mean(nl)) if nl else None, "tags": tags,
+            "latency_median_ms": float(np.median(diag)) if len(diag) else None,
+            "latency_p99_ms": float(np.percentile(diag, 99)) if len(diag) else None}
+
+
+def truth_of(dataset: Path) -> tuple[Poses2D, dict, set[int]]:
+    trajectory, tags = read_dataset_truth(dataset)
+    truth = Poses2D(trajectory.stamp_ns, trajectory.xyz[:, :2], yaw_from_quaternion(*trajectory.quat_xyzw.T))
+    return truth, {t.id: t.xyz[:2] for t in tags}, {t.id for t in tags if t.nlos}
+
+
+def heading_drift_deg(items, truth: Poses2D) -> float:
+    """Largest gap between the gyro heading the SLAM uses and the true heading (start-frame)."""
+    pre = [m for t, _s, m in items if t == "/rover/preintegration"]
+    stamps = np.array([stamp_of(m) for m in pre])
+    yaw = np.array([yaw_from_quaternion(m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w)
+                    for m in pre])
+    k = np.clip(np.searchsorted(truth.stamp_ns, stamps), 0, len(truth.stamp_ns) - 1)
+    k0 = int(np.clip(np.searchsorted(truth.stamp_ns, stamps[0]), 0, len(truth.stamp_ns) - 1))
+    gap = np.angle(np.exp(1j * (yaw - (truth.yaw[k] - truth.yaw[k0]))))
+    return float(np.degrees(np.abs(gap).max()))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--windows", type=int, nargs="+", default=[10, 30, 100, 300])
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    figures: dict = {"paper": PAPER, "variants": {}, "latency": {}}
+    variants = {"paper formulation (AoA + IMU)": SlamParams(wheel=False),
+                "with wheel odometry (default)": SlamParams(),
+                "full batch, wheel odometry": SlamParams(batch=True)}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        per_seed = []
+        for seed in args.seeds:
+            dataset = tmp / f"paper-{seed}.mcap"
+            subprocess.run([sys.executable, "-m", "rover.cli", "-q", "simulate", "--scenario", "paper",
+                            "--seed", str(seed), "-o", str(dataset)], check=True)
+            items = inputs(front_end(dataset, tmp / f"run-{seed}"), dataset)
+            truth, tags, nlos = truth_of(dataset)
+            per_seed.append((seed, items, truth, tags, nlos))
+            figures.setdefault("heading_drift_deg", []).append(heading_drift_deg(items, truth))
+        for name, params in variants.items():
+            rows = []
+            for seed, items, truth, tags, nlos in per_seed:
+                out, cpu_s = run_slam(items, params)
+                row = score(out, truth, tags, nlos)
+                row.update(seed=seed, cpu_s=cpu_s)
+                rows.append(row)
+            figures["variants"][name] = rows
+            print(f"{name}:")
+            for r in rows:
+                tag_text = ", ".join(f"{i}{'*' if t['nlos'] else ''} {t['error_m'] * 100:.0f} cm"
+                                     f" (localized {t['first_localized_s']:.0f} s)" if t["first_localized_s"] is not None
+                                     else f"{i} {t['error_m'] * 100:.0f} cm (never localized)"
+                                     for i, t in sorted(r["tags"].items()))
+                latency = (f"; latency median {r['latency_median_ms']:.1f} ms, p99 {r['latency_p99_ms']:.1f} ms"
+                           if r["latency_median_ms"] is not None else "")
+                print(f"  seed {r['seed']}: robot mean {r['robot_mean_m'] * 100:.1f} cm, median "
+                      f"{r['robot_median_m'] * 100:.1f} cm (live {r['robot_live_mean_m'] * 100:.1f} cm); tags {tag_text}"
+                      f"{latency}; {r['cpu_s']:.1f} s CPU")
+            mean = lambda key: float(np.mean([r[key] for r in rows if r[key] is not None]))
+            print(f"  mean over seeds: robot {mean('robot_mean_m') * 100:.1f} cm (paper 39.3), LOS tags "
+                  f"{mean('los_tags_mean_m') * 100:.1f} cm (paper 74.6), NLOS tag {mean('nlos_tag_m') * 100:.1f} cm "
+                  f"(paper 145.9)")
+        print(f"gyro heading drift over a run (max): {max(figures['heading_drift_deg']):.2f} deg")
+        _seed, items, *_ = per_seed[0]
+        for window in args.windows:
+            out, _cpu = run_slam(items, SlamParams(window=window), limit_epochs=window + 150)
+            times = np.array([e.msg.solve_time_s for e in out if e.port == "diagnostics"][window:]) * 1e3
+            figures["latency"][window] = {"median_ms": float(np.median(times)), "p99_ms": float(np.percentile(times, 99))}
+            print(f"window {window:4d} epochs: update latency median {np.median(times):.1f} ms, "
+                  f"p99 {np.percentile(times, 99):.1f} ms")
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
