@@ -80,7 +80,7 @@ def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
     final = poses([e.msg for e in out if e.port == "trajectory"])
     live = poses([e.msg for e in out if e.port == "pose"])
     errors = trajectory_errors(truth, final)
-    live_errors = trajectory_errors(truth, live)
+    live_errors = trajectory_errors(truth, live) if len(live.stamp_ns) > 1 else None
     arrays = [e.msg for e in out if e.port == "tags"]
     t0 = final.stamp_ns[0]
     tags = {}
@@ -96,7 +96,7 @@ def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
     nl = [t["error_m"] for t in tags.values() if t["nlos"]]
     diag = np.array([e.msg.solve_time_s for e in out if e.port == "diagnostics"]) * 1e3
     return {"robot_mean_m": errors.unaligned["mean_m"], "robot_median_m": errors.unaligned["median_m"],
-            "robot_live_mean_m": live_errors.unaligned["mean_m"], "robot_aligned_mean_m": errors.aligned["mean_m"],
+            "robot_live_mean_m": live_errors.unaligned["mean_m"] if live_errors else None, "robot_aligned_mean_m": errors.aligned["mean_m"],
             "los_tags_mean_m": float(np.mean(los)) if los else None,
             "nlos_tag_m": float(np.mean(nl)) if nl else None, "tags": tags,
             "latency_median_ms": float(np.median(diag)) if len(diag) else None,
@@ -156,10 +156,11 @@ def main() -> int:
                                      f" (localized {t['first_localized_s']:.0f} s)" if t["first_localized_s"] is not None
                                      else f"{i} {t['error_m'] * 100:.0f} cm (never localized)"
                                      for i, t in sorted(r["tags"].items()))
+                live = f" (live {r['robot_live_mean_m'] * 100:.1f} cm)" if r["robot_live_mean_m"] is not None else ""
                 latency = (f"; latency median {r['latency_median_ms']:.1f} ms, p99 {r['latency_p99_ms']:.1f} ms"
                            if r["latency_median_ms"] is not None else "")
                 print(f"  seed {r['seed']}: robot mean {r['robot_mean_m'] * 100:.1f} cm, median "
-                      f"{r['robot_median_m'] * 100:.1f} cm (live {r['robot_live_mean_m'] * 100:.1f} cm); tags {tag_text}"
+                      f"{r['robot_median_m'] * 100:.1f} cm{live}; tags {tag_text}"
                       f"{latency}; {r['cpu_s']:.1f} s CPU")
             mean = lambda key: float(np.mean([r[key] for r in rows if r[key] is not None]))
             print(f"  mean over seeds: robot {mean('robot_mean_m') * 100:.1f} cm (paper 39.3), LOS tags "

@@ -37,10 +37,16 @@ class WindowSettings:
     """AoA residuals beyond this many standard deviations count linearly (Huber)"""
     hinge_weight: float = 10.0
     """cost per (distance / (d * sigma)) of a tag placed behind its bearing"""
-    reweight_passes: int = 2
-    """convex solves per update, each with the distances of the previous one"""
+    reweight_passes: int = 3
+    """at most this many convex solves per update, each with the distances of the previous one"""
+    reweight_tolerance: float = 0.1
+    """the passes stop once no distance to a tag not yet localized (inlier rows) changed by more than
+    this fraction; for localized tags the distances of the last refined estimate are already right,
+    and reweighting toward the convex solution would feed its short-range bias"""
     refine_iterations: int = 3
-    """Gauss-Newton steps on the angle residual after the convex passes"""
+    """at most this many Gauss-Newton steps on the angle residual after the convex passes"""
+    refine_tolerance_m: float = 2e-3
+    """the steps stop once no state moved by more than this"""
     initial_range_m: float = 3.0
     """the distance guessed for a tag heard for the first time"""
     min_range_m: float = 0.3
@@ -84,10 +90,11 @@ class Edge:
     dt: float
     delta: np.ndarray
     covariance: np.ndarray
+    chol: np.ndarray = field(init=False, repr=False)
+    """the covariance's Cholesky factor (the program's odometry rows are whitened by it)"""
 
-    @property
-    def chol(self) -> np.ndarray:
-        return np.linalg.cholesky(self.covariance)
+    def __post_init__(self) -> None:
+        self.chol = np.linalg.cholesky(self.covariance)
 
 
 @dataclass
@@ -97,6 +104,20 @@ class Update:
     iterations: int = 0
     huber_active: int = 0
     failed: str = ""
+
+
+@dataclass(frozen=True)
+class _Model:
+    """One update's odometry, wheel and prior numbers, stacked."""
+
+    edge_l: np.ndarray
+    edge_chol: np.ndarray
+    edge_whiten: np.ndarray
+    edge_delta: np.ndarray
+    pairs: np.ndarray
+    velocity_info: np.ndarray
+    velocity_linear: np.ndarray
+    prior_index: np.ndarray
 
 
 @dataclass
@@ -239,25 +260,28 @@ class SlidingWindow:
         jb = np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * std)[:, None]
         return residual, np.where(filled[:, None], jb, 0.0)
 
-    def _odometry_cost(self, x: np.ndarray) -> float:
-        if not self.edges:
-            return 0.0
-        l = edge_matrix(np.array([e.dt for e in self.edges]))
-        pairs = np.stack([x[4 * k:4 * k + 8] for k in range(len(self.edges))])
-        r = np.einsum("nij,nj->ni", l, pairs) - np.stack([e.delta for e in self.edges])
-        white = np.linalg.solve(np.stack([e.chol for e in self.edges]), r[:, :, None])
-        return 0.5 * float(np.sum(white ** 2))
+    def _model(self) -> _Model:
+        """The update's fixed numbers, stacked once."""
+        ne = len(self.edges)
+        chol = np.stack([e.chol for e in self.edges]) if ne else np.zeros((0, 4, 4))
+        return _Model(
+            edge_l=edge_matrix(np.array([e.dt for e in self.edges])), edge_chol=chol,
+            edge_whiten=np.linalg.inv(chol) if ne else chol,
+            edge_delta=np.stack([e.delta for e in self.edges]) if ne else np.zeros((0, 4)),
+            pairs=4 * np.arange(ne)[:, None] + np.arange(8),
+            velocity_info=np.stack([e.velocity_info for e in self.epochs]),
+            velocity_linear=np.stack([e.velocity_linear for e in self.epochs]),
+            prior_index=prior_indices(self.shape))
 
-    def _wheel_cost(self, x: np.ndarray) -> float:
+    def _cost(self, model: _Model, x: np.ndarray, residual: np.ndarray) -> float:
+        """The true cost: odometry, wheel, prior, and the Huber loss of the angle residuals."""
+        r = np.einsum("nij,nj->ni", model.edge_l, x[model.pairs]) - model.edge_delta
+        odometry = 0.5 * float(np.sum(np.einsum("nij,nj->ni", model.edge_whiten, r) ** 2))
         v = x[:4 * len(self.epochs)].reshape(-1, 4)[:, 2:4]
-        info = np.stack([e.velocity_info for e in self.epochs])
-        linear = np.stack([e.velocity_linear for e in self.epochs])
-        return float(0.5 * np.einsum("ni,nij,nj->", v, info, v) - np.sum(linear * v))
-
-    def _cost(self, x: np.ndarray, residual: np.ndarray) -> float:
+        wheel = float(0.5 * np.einsum("ni,nij,nj->", v, model.velocity_info, v) - np.sum(model.velocity_linear * v))
         p = self.prior
-        d = x[prior_indices(self.shape)] - p.mean
-        return (self._odometry_cost(x) + self._wheel_cost(x) + 0.5 * float(d @ p.info @ d) + float(p.grad @ d)
+        d = x[model.prior_index] - p.mean
+        return (odometry + wheel + 0.5 * float(d @ p.info @ d) + float(p.grad @ d)
                 + 0.5 * float(huber_cost(residual, self.settings.huber_sigma).sum()))
 
     # -- one update -----------------------------------------------------------------------------
@@ -269,13 +293,12 @@ class SlidingWindow:
         if self.program is None or self.program.shape != shape:
             self.program = WindowProgram(shape)
         p = self.prior
+        model = self._model()
         c = np.zeros(shape.states)
-        c[prior_indices(shape)] = p.info @ p.mean - p.grad
-        c[:4 * shape.epochs].reshape(-1, 4)[:, 2:4] += np.stack([e.velocity_linear for e in self.epochs])
-        base = dict(prior_info=p.info, velocity_info=np.stack([e.velocity_info for e in self.epochs]), c=c, edge_l=edge_matrix(np.array([e.dt for e in self.edges])),
-                    edge_chol=np.stack([e.chol for e in self.edges]) if self.edges else np.zeros((0, 4, 4)),
-                    edge_delta=np.stack([e.delta for e in self.edges]) if self.edges else np.zeros((0, 4)),
-                    huber_m=s.huber_sigma)
+        c[model.prior_index] = p.info @ p.mean - p.grad
+        c[:4 * shape.epochs].reshape(-1, 4)[:, 2:4] += model.velocity_linear
+        base = dict(prior_info=p.info, velocity_info=model.velocity_info, c=c, edge_l=model.edge_l,
+                    edge_chol=model.edge_chol, edge_delta=model.edge_delta, huber_m=s.huber_sigma)
         epoch, tag, bearing, std, filled = self._rows()
         perp = np.stack([-bearing[:, 1], bearing[:, 0]], axis=1)
         zeros_g = np.zeros((shape.rows, 2 + 2 * shape.tags))
@@ -283,19 +306,27 @@ class SlidingWindow:
         x = self.x.copy()
         weight = np.ones(shape.rows)
         try:
+            d = np.maximum(np.linalg.norm(self._offsets(x, epoch, tag), axis=1), s.min_range_m)
+            localized = np.zeros(max(shape.tags, 1), bool)
+            localized[:len(self.tag_covariance)] = self.observable()
             for _ in range(s.reweight_passes):
-                d = np.maximum(np.linalg.norm(self._offsets(x, epoch, tag), axis=1), s.min_range_m)
                 scale = np.where(filled, 1.0 / (d * std), 0.0)
                 x, iterations = self.program.solve(UpdateData(
                     **base, a=self._slot_coefficients(perp * scale[:, None], tag), offset=np.zeros(shape.rows),
                     g=self._slot_coefficients(bearing * scale[:, None], tag), hinge=s.hinge_weight * weight))
                 result.iterations += iterations
-                r = np.einsum("ij,ij->i", perp, self._offsets(x, epoch, tag)) * scale
+                offsets = self._offsets(x, epoch, tag)
+                r = np.einsum("ij,ij->i", perp, offsets) * scale
                 weight = np.minimum(1.0, s.huber_sigma / np.maximum(np.abs(r), 1e-12))
+                settled = d
+                d = np.maximum(np.linalg.norm(offsets, axis=1), s.min_range_m)
+                unsure = filled & (weight >= 1.0) & ~localized[np.maximum(tag, 0)]
+                if np.all(np.abs(d - settled)[unsure] <= s.reweight_tolerance * settled[unsure]):
+                    break
             residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
-            cost = self._cost(x, residual[filled])
+            cost = self._cost(model, x, residual[filled])
             res_p, jb_p = self._angles(self.x, epoch, tag, bearing, std, filled)
-            cost_p = self._cost(self.x, res_p[filled])
+            cost_p = self._cost(model, self.x, res_p[filled])
             if cost_p < cost:
                 x, residual, jb, cost = self.x.copy(), res_p, jb_p, cost_p
             for _ in range(s.refine_iterations):
@@ -304,10 +335,10 @@ class SlidingWindow:
                     hinge=np.full(shape.rows, GN_HINGE_WEIGHT)))
                 result.iterations += iterations
                 res_t, jb_t = self._angles(trial, epoch, tag, bearing, std, filled)
-                cost_t = self._cost(trial, res_t[filled])
+                cost_t = self._cost(model, trial, res_t[filled])
                 if cost_t > cost:
                     break
-                converged = np.max(np.abs(trial - x)) < 1e-5
+                converged = np.max(np.abs(trial - x)) < s.refine_tolerance_m
                 x, residual, jb, cost = trial, res_t, jb_t, cost_t
                 if converged:
                     break

@@ -130,7 +130,7 @@ class UpdateData:
 class WindowProgram:
     """The conic program for one window shape; `solve` takes the numbers of one update."""
 
-    def __init__(self, shape: Shape, max_iter: int = 50):
+    def __init__(self, shape: Shape, max_iter: int = 50, tolerance: float = 1e-6):
         self.shape = shape
         nx, r, ne = shape.states, shape.rows, max(shape.epochs - 1, 0)
         self.rho0 = nx
@@ -174,6 +174,7 @@ class WindowProgram:
         self.settings = clarabel.DefaultSettings()
         self.settings.verbose = False
         self.settings.max_iter = max_iter
+        self.settings.tol_gap_abs = self.settings.tol_gap_rel = self.settings.tol_feas = tolerance
         self.solver: clarabel.DefaultSolver | None = None
 
     def solve(self, d: UpdateData) -> tuple[np.ndarray, int]:
