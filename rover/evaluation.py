@@ -95,3 +95,85 @@ def trajectory_errors(truth: Poses2D, estimate: Poses2D, max_diff_s: float = 0.0
     alignment = fit_rigid(est, reference)
     return TrajectoryErrors(error_stats(np.linalg.norm(est - reference, axis=1)),
                             error_stats(np.linalg.norm(alignment.apply(est) - reference, axis=1)), alignment, to_start)
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """What a run estimated, as plain arrays (from memory at the end of a run, or from its files)."""
+
+    final: Poses2D
+    live: Poses2D
+    tag_ids: np.ndarray
+    tag_xy: np.ndarray
+    """final tag estimates (nan where never localized)"""
+    tag_cov: np.ndarray
+    tag_history: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    """(stamp_ns, id, xy (n, 2), observable) of every tag estimate published"""
+    aoa: tuple[np.ndarray, np.ndarray, np.ndarray]
+    """(stamp_ns, tag id, robot-frame angle) of every AoA"""
+
+
+@dataclass(frozen=True)
+class Truth:
+    trajectory: Poses2D
+    tags: dict[int, tuple[np.ndarray, bool]]
+    """id -> (xy, nlos)"""
+
+
+def poses_at(truth: Poses2D, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Truth position and yaw interpolated at `stamps` (clamped to its span)."""
+    t = truth.stamp_ns.astype(np.float64)
+    x = np.interp(stamps, t, truth.xy[:, 0])
+    y = np.interp(stamps, t, truth.xy[:, 1])
+    yaw = np.interp(stamps, t, np.unwrap(truth.yaw))
+    return np.stack([x, y], axis=1), yaw
+
+
+def angle_stats(errors_rad: np.ndarray) -> dict[str, float]:
+    deg = np.degrees(np.abs(errors_rad))
+    if len(deg) == 0:
+        return {"count": 0}
+    return {"count": int(len(deg)), "median_deg": float(np.median(deg)), "p90_deg": float(np.percentile(deg, 90)),
+            "mean_deg": float(np.mean(deg))}
+
+
+def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
+    """metrics.json: robot errors (both trajectories, unaligned and aligned), tag errors, AoA errors."""
+    final = trajectory_errors(truth.trajectory, run.final, max_diff_s)
+    metrics: dict = {"robot": {"trajectory.tum": {"unaligned": final.unaligned, "aligned": final.aligned}}}
+    if len(run.live.stamp_ns):
+        live = trajectory_errors(truth.trajectory, run.live, max_diff_s)
+        metrics["robot"]["trajectory_live.tum"] = {"unaligned": live.unaligned, "aligned": live.aligned}
+    start = final.to_start
+    tags: dict[str, dict] = {}
+    for tag_id, xy, cov in zip(run.tag_ids, run.tag_xy, run.tag_cov):
+        if int(tag_id) not in truth.tags:
+            continue
+        where, nlos = truth.tags[int(tag_id)]
+        reference = start.apply(np.asarray(where)[None])[0]
+        entry = {"nlos": bool(nlos), "localized": bool(np.isfinite(xy).all())}
+        if entry["localized"]:
+            entry["error_m"] = float(np.linalg.norm(xy - reference))
+            entry["aligned_error_m"] = float(np.linalg.norm(final.alignment.apply(xy[None])[0] - reference))
+            entry["reported_std_m"] = float(math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
+        tags[str(int(tag_id))] = entry
+    metrics["tags"] = tags
+    for kind, flag in (("los", False), ("nlos", True)):
+        errors = [t["error_m"] for t in tags.values() if t["nlos"] == flag and "error_m" in t]
+        metrics[f"{kind}_tags_mean_m"] = float(np.mean(errors)) if errors else None
+    error, nlos = aoa_errors(run, truth)
+    if len(error):
+        metrics["aoa"] = {"all": angle_stats(error), "los": angle_stats(error[~nlos]), "nlos": angle_stats(error[nlos])}
+    return metrics
+
+
+def aoa_errors(run: RunRecord, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
+    """Each AoA's error against the direction from the true pose to the true tag, and its NLOS flag."""
+    stamps, ids, angles = run.aoa
+    known = np.array([int(i) in truth.tags for i in ids], dtype=bool)
+    if not known.any():
+        return np.zeros(0), np.zeros(0, bool)
+    position, yaw = poses_at(truth.trajectory, stamps[known])
+    where = np.array([truth.tags[int(i)][0] for i in ids[known]])
+    true = np.arctan2(where[:, 1] - position[:, 1], where[:, 0] - position[:, 0]) - yaw
+    return np.angle(np.exp(1j * (angles[known] - true))), np.array([truth.tags[int(i)][1] for i in ids[known]])

@@ -18,6 +18,7 @@ BUILTINS: dict[str, str] = {
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
     "csi_file": "rover.drivers.csi_file:CsiFile",
     "recorder": "rover.drivers.recorder:Recorder",
+    "run_outputs": "rover.drivers.run_outputs:RunOutputs",
 }
 """Short name -> `module:Class`; modules are imported only when a pipeline uses them."""
 

@@ -1,0 +1,108 @@
+"""The figures of a run with ground truth, in the style of the paper's: the trajectory and tags with
+their error ellipses over the truth (Fig. 6b), robot and tag errors over time (Fig. 7b), the AoA
+error CDF (Fig. 5a)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rover.evaluation import RunRecord, Truth, aoa_errors, poses_at, start_frame
+
+ELLIPSE_SIGMA = 2.0
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
+    """Write the PNGs into `out`; returns their paths."""
+    plt = _pyplot()
+    to_start = start_frame(truth.trajectory, int(run.final.stamp_ns[0]))
+    t0 = run.final.stamp_ns[0]
+    written = []
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    ax.plot(*to_start.apply(truth.trajectory.xy).T, color="0.6", lw=2, label="ground truth")
+    ax.plot(*run.live.xy.T, color="tab:orange", lw=0.8, alpha=0.7, label="live estimate")
+    ax.plot(*run.final.xy.T, color="tab:blue", lw=1.2, label="final estimate")
+    for tag_id, (xy, nlos) in truth.tags.items():
+        p = to_start.apply(np.asarray(xy)[None])[0]
+        ax.plot(*p, "x", color="tab:red" if nlos else "k", ms=9, mew=2)
+        ax.annotate(f"tag {tag_id}{' (NLOS)' if nlos else ''}", p, textcoords="offset points", xytext=(6, 6))
+    angle = np.linspace(0, 2 * np.pi, 60)
+    circle = np.stack([np.cos(angle), np.sin(angle)])
+    for xy, cov in zip(run.tag_xy, run.tag_cov):
+        if not np.isfinite(xy).all():
+            continue
+        values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
+        ellipse = vectors @ (ELLIPSE_SIGMA * np.sqrt(np.maximum(values, 0))[:, None] * circle) + xy[:, None]
+        ax.plot(*xy, "o", color="tab:blue")
+        ax.plot(*ellipse, color="tab:blue", lw=1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"Trajectory and tags ({ELLIPSE_SIGMA:.0f}-sigma ellipses), world frame of the first pose")
+    ax.legend(loc="best", fontsize=8)
+    written.append(_save(fig, out / "trajectory.png", plt))
+
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for poses, label in ((run.final, "final"), (run.live, "live")):
+        if len(poses.stamp_ns):
+            where, _ = poses_at(truth.trajectory, poses.stamp_ns)
+            error = np.linalg.norm(poses.xy - to_start.apply(where), axis=1)
+            ax.plot((poses.stamp_ns - t0) / 1e9, error * 100, label=label, lw=1)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("robot error (cm)")
+    ax.legend()
+    written.append(_save(fig, out / "robot_error.png", plt))
+
+    stamps, ids, xy, observable = run.tag_history
+    aoa_stamps, aoa_ids, _ = run.aoa
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for tag_id, (where, nlos) in sorted(truth.tags.items()):
+        mine = (ids == tag_id) & observable
+        if not mine.any():
+            continue
+        reference = to_start.apply(np.asarray(where)[None])[0]
+        line, = ax.plot((stamps[mine] - t0) / 1e9, np.linalg.norm(xy[mine] - reference, axis=1) * 100,
+                        label=f"tag {tag_id}{' (NLOS)' if nlos else ''}", lw=1)
+        heard = aoa_stamps[aoa_ids == tag_id]
+        if len(heard):
+            ax.axvline((heard.min() - t0) / 1e9, color=line.get_color(), ls=":", lw=0.8)
+            ax.axvline((heard.max() - t0) / 1e9, color=line.get_color(), ls="--", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xlabel("time (s)  (dotted: first heard, dashed: last heard)")
+    ax.set_ylabel("tag error (cm)")
+    ax.legend(fontsize=8)
+    written.append(_save(fig, out / "tag_error.png", plt))
+
+    error, nlos = aoa_errors(run, truth)
+    if len(error):
+        fig, ax = plt.subplots(figsize=(5, 4))
+        for mask, label in ((~nlos, "LOS"), (nlos, "NLOS")):
+            if mask.any():
+                e = np.sort(np.degrees(np.abs(error[mask])))
+                ax.plot(e, np.arange(1, len(e) + 1) / len(e), label=f"{label} (median {np.median(e):.1f} deg)")
+        ax.set_xlabel("AoA error (deg)")
+        ax.set_ylabel("CDF")
+        ax.set_xlim(0, 60)
+        ax.legend()
+        written.append(_save(fig, out / "aoa_cdf.png", plt))
+    return written
+
+
+def _save(fig, path: Path, plt) -> Path:
+    partial = path.with_name(f".{path.stem}.partial.png")
+    fig.tight_layout()
+    fig.savefig(partial, dpi=110)
+    plt.close(fig)
+    partial.replace(path)
+    return path
