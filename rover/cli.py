@@ -153,6 +153,26 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
+    from rover.evaluation import evaluate, render
+    from rover.run_record import load_run, load_truth, run_dataset
+
+    run = load_run(args.run)
+    source = args.truth or run_dataset(args.run)
+    if source is None:
+        raise BadInput(f"{args.run}: the run names no dataset with ground truth: pass --truth DATASET_OR_TUM")
+    truth = load_truth(source, args.tags)
+    if truth is None:
+        raise BadInput(f"{source}: no ground truth (/groundtruth/pose) in this dataset: pass --truth")
+    if not truth.tags and args.tags is None and str(source).endswith((".tum", ".txt")):
+        logging.getLogger("rover.eval").warning("no tag truth: pass --tags CSV for tag errors")
+    metrics = evaluate(run, truth, args.t_max_diff)
+    sys.stdout.write(json.dumps(metrics, indent=2) + "\n" if args.json else render(metrics))
+    return 0
+
+
 def _add_set(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline")
 
@@ -210,6 +230,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_simulate)
+
+    p = command("eval", help="errors of a run against ground truth (robot, tags, AoA), as evo computes them")
+    p.add_argument("run", help="the --output directory of a `rover run`")
+    p.add_argument("--truth", help="dataset or TUM file with the true trajectory (default: the run's dataset)")
+    p.add_argument("--tags", help="true tag positions (CSV: id,channel,x,y,z,nlos)")
+    p.add_argument("--t-max-diff", type=float, default=0.01, help="largest stamp gap when pairing poses (s)")
+    p.add_argument("--json", action="store_true", help="print metrics.json instead of the table")
+    p.set_defaults(func=cmd_eval)
 
     p = command("info", help="what a dataset holds, like `ros2 bag info`")
     p.add_argument("path")

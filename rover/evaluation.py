@@ -177,3 +177,34 @@ def aoa_errors(run: RunRecord, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
     where = np.array([truth.tags[int(i)][0] for i in ids[known]])
     true = np.arctan2(where[:, 1] - position[:, 1], where[:, 0] - position[:, 0]) - yaw
     return np.angle(np.exp(1j * (angles[known] - true))), np.array([truth.tags[int(i)][1] for i in ids[known]])
+
+
+PAPER_ROBOT_MEAN_M = 0.393
+PAPER_LOS_TAGS_MEAN_M = 0.746
+
+
+def render(metrics: dict) -> str:
+    """The readable table of `rover eval` (the JSON is `metrics`)."""
+    cm = lambda v: "-" if v is None else f"{v * 100:.1f} cm"
+    lines = [f"{"robot":<30}{'mean':>10}{'median':>10}{'rmse':>10}{'max':>10}{'poses':>7}"]
+    for name, entry in metrics["robot"].items():
+        for kind in ("unaligned", "aligned"):
+            e = entry[kind]
+            lines.append(f"{name + ' ' + kind:<30}{cm(e['mean_m']):>10}{cm(e['median_m']):>10}{cm(e['rmse_m']):>10}"
+                         f"{cm(e['max_m']):>10}{e['poses']:>7}")
+    lines.append(f"  paper (Zhang et al.): robot mean {cm(PAPER_ROBOT_MEAN_M)}")
+    lines.append(f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}  ")
+    for tag_id, t in metrics["tags"].items():
+        label = f"{tag_id}{' NLOS' if t['nlos'] else ''}"
+        if t["localized"]:
+            lines.append(f"{label:<8}{cm(t['error_m']):>10}{cm(t['aligned_error_m']):>10}{cm(t['reported_std_m']):>14}")
+        else:
+            lines.append(f"{label:<8}{'never localized':>34}")
+    lines.append(f"LOS tags mean {cm(metrics['los_tags_mean_m'])} (paper {cm(PAPER_LOS_TAGS_MEAN_M)}), "
+                 f"NLOS tags mean {cm(metrics['nlos_tags_mean_m'])}")
+    if "aoa" in metrics:
+        for kind, a in metrics["aoa"].items():
+            if a["count"]:
+                lines.append(f"AoA {kind:<4} median {a['median_deg']:.1f} deg, 90th percentile {a['p90_deg']:.1f} deg "
+                             f"({a['count']} bursts)")
+    return "\n".join(lines) + "\n"

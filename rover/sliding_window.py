@@ -61,8 +61,10 @@ class WindowSettings:
     """wheel odometry speed noise"""
     wheel_scale_std: float = 0.03
     """wheel radius error, as a fraction of the speed"""
+    nonholonomic: bool = True
+    """a wheeled base does not move sideways: its velocity is along its heading (linear given the gyro's)"""
     lateral_std_m_s: float = 0.02
-    """the non-holonomic constraint: how fast the robot may slip sideways"""
+    """how fast the robot may slip sideways"""
     observable_std_m: float = 0.5
     """a tag is reported localized once its position's largest standard deviation is below this"""
 
@@ -174,7 +176,7 @@ class SlidingWindow:
     def add_epoch(self, stamp_ns: int, yaw: float, tag_ids: list[int], angles_rad: np.ndarray,
                   stds_rad: np.ndarray, edge: Edge | None, speed_m_s: float | None = None) -> None:
         """Append an epoch: the robot-frame AoAs seen there, the odometry from the previous epoch and,
-        when there is wheel odometry, the forward speed (with no sideways motion: non-holonomic)."""
+        when there is wheel odometry, the forward speed."""
         s = self.settings
         direction = yaw + np.asarray(angles_rad, float)
         bearing = np.stack([np.cos(direction), np.sin(direction)], axis=1).reshape(-1, 2)
@@ -199,10 +201,12 @@ class SlidingWindow:
             slots.append(self.tag_ids.index(tag_id))
         self.x = np.concatenate([self.x[:4 * len(self.epochs)], state, tags.ravel()])
         epoch = Epoch(stamp_ns, yaw, np.array(slots, dtype=int), bearing, np.asarray(stds_rad, float))
+        forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        if s.nonholonomic:
+            epoch.velocity_info = np.outer(side, side) / s.lateral_std_m_s ** 2
         if speed_m_s is not None:
-            forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
             var = s.wheel_speed_std_m_s ** 2 + (s.wheel_scale_std * speed_m_s) ** 2
-            epoch.velocity_info = np.outer(forward, forward) / var + np.outer(side, side) / s.lateral_std_m_s ** 2
+            epoch.velocity_info = epoch.velocity_info + np.outer(forward, forward) / var
             epoch.velocity_linear = forward * speed_m_s / var
         self.epochs.append(epoch)
         if len(self.epochs) > s.window:
