@@ -186,7 +186,7 @@ PAPER_LOS_TAGS_MEAN_M = 0.746
 def render(metrics: dict) -> str:
     """The readable table of `rover eval` (the JSON is `metrics`)."""
     cm = lambda v: "-" if v is None else f"{v * 100:.1f} cm"
-    lines = [f"{"robot":<30}{'mean':>10}{'median':>10}{'rmse':>10}{'max':>10}{'poses':>7}"]
+    lines = [f"{'robot':<30}{'mean':>10}{'median':>10}{'rmse':>10}{'max':>10}{'poses':>7}"]
     for name, entry in metrics["robot"].items():
         for kind in ("unaligned", "aligned"):
             e = entry[kind]

@@ -1,0 +1,127 @@
+"""`rover eval` on hand-made trajectories with known errors, and agreement with evo_ape."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import run_rover
+from rover.evaluation import Poses2D, fit_rigid, trajectory_errors
+
+T0 = 1_700_000_000.0
+
+
+def square_path(n: int = 400) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 4 x 2 m rectangle driven counter-clockwise from the origin along +x: stamps (s), xy, yaw."""
+    s = np.linspace(0, 12.0, n, endpoint=False)
+    corners = np.array([[0, 0], [4, 0], [4, 2], [0, 2], [0, 0]], float)
+    lengths = np.linalg.norm(np.diff(corners, axis=0), axis=1)
+    edge = np.searchsorted(np.cumsum(lengths), s, side="right")
+    start = np.concatenate([[0], np.cumsum(lengths)])[edge]
+    direction = np.diff(corners, axis=0)[edge] / lengths[edge, None]
+    xy = corners[edge] + direction * (s - start)[:, None]
+    return T0 + s * 2.0, xy, np.arctan2(direction[:, 1], direction[:, 0])
+
+
+def write_tum(path: Path, t: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> Path:
+    path.write_text("".join(f"{a:.9f} {x:.6f} {y:.6f} 0 0 0 {math.sin(w / 2):.9f} {math.cos(w / 2):.9f}\n"
+                            for a, (x, y), w in zip(t, xy, yaw)))
+    return path
+
+
+def rotate(xy: np.ndarray, angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return xy @ np.array([[c, -s], [s, c]]).T
+
+
+def poses(t, xy, yaw) -> Poses2D:
+    return Poses2D((np.asarray(t) * 1e9).astype(np.int64), xy, yaw)
+
+
+def test_known_offset_and_rotation():
+    t, xy, yaw = square_path()
+    shifted = trajectory_errors(poses(t, xy, yaw), poses(t, xy + [0.1, 0.0], yaw))
+    assert shifted.unaligned["mean_m"] == pytest.approx(0.1, abs=1e-9)
+    assert shifted.aligned["max_m"] < 1e-9
+    turned = rotate(xy, math.radians(5.0))
+    errors = trajectory_errors(poses(t, xy, yaw), poses(t, turned, yaw))
+    expected = np.linalg.norm(turned - xy, axis=1)
+    assert errors.unaligned["mean_m"] == pytest.approx(expected.mean(), rel=1e-9)
+    assert errors.unaligned["rmse_m"] == pytest.approx(math.sqrt(np.mean(expected ** 2)), rel=1e-9)
+    assert errors.aligned["max_m"] < 1e-9
+
+
+def test_truth_in_another_frame_is_brought_to_the_start():
+    t, xy, yaw = square_path()
+    room = rotate(xy, 0.7) + [3.0, -2.0]
+    errors = trajectory_errors(poses(t, room, yaw + 0.7), poses(t, xy, yaw))
+    assert errors.unaligned["max_m"] < 1e-6
+
+
+def test_the_fit_is_rigid_never_scaled():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(50, 2))
+    fit = fit_rigid(1.5 * a, a)
+    assert np.linalg.det(fit.rotation) == pytest.approx(1.0)
+    assert np.allclose(fit.rotation @ fit.rotation.T, np.eye(2))
+
+
+def evo_stats(reference: Path, estimate: Path, *extra: str) -> dict[str, float]:
+    evo = Path(sys.executable).with_name("evo_ape")
+    assert evo.exists(), "evo is a test dependency (pip install -e .[test])"
+    out = subprocess.run([str(evo), "tum", str(reference), str(estimate), *extra, "--project_to_plane", "xy",
+                          "--t_max_diff", "0.01", "--no_warnings"], capture_output=True, text=True, check=True).stdout
+    return {k: float(v) for k, v in re.findall(r"^\s*(max|mean|median|rmse)\s+([0-9.eE+-]+)\s*$", out, re.M)}
+
+
+def make_run(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A run directory whose estimate is the truth plus a drift and noise, truth as TUM + tags CSV."""
+    rng = np.random.default_rng(7)
+    t, xy, yaw = square_path()
+    reference = write_tum(tmp_path / "truth.tum", t, xy, yaw)
+    drift = np.cumsum(rng.normal(scale=0.01, size=xy.shape), axis=0)
+    estimate = rotate(xy + drift, math.radians(2.0))
+    run = tmp_path / "run"
+    run.mkdir()
+    write_tum(run / "trajectory.tum", t, estimate, yaw)
+    write_tum(run / "trajectory_live.tum", t[::2] + 0.004, estimate[::2] + 0.05, yaw[::2])
+    (run / "tags.csv").write_text("id,channel,x,y,z,var_x,cov_xy,var_y,observable,first_heard_s,first_localized_s,"
+                                  "last_heard_s\n1,149,2.1,3.0,0,0.01,0,0.01,1,1,2,3\n2,153,,,,1,0,1,0,1,,3\n")
+    tags = tmp_path / "tags_truth.csv"
+    tags.write_text("id,channel,x,y,z,nlos\n1,149,2.0,3.0,0,0\n2,153,-1.0,1.0,0,1\n")
+    return run, reference, tags
+
+
+def test_rover_eval_agrees_with_evo(tmp_path):
+    run, reference, tags = make_run(tmp_path)
+    proc = run_rover("eval", str(run), "--truth", str(reference), "--tags", str(tags), "--json")
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads(proc.stdout)
+    for name in ("trajectory.tum", "trajectory_live.tum"):
+        evo = evo_stats(reference, run / name, "-a")
+        mine = metrics["robot"][name]["aligned"]
+        for key in ("max", "mean", "median", "rmse"):
+            assert mine[f"{key}_m"] == pytest.approx(evo[key], abs=1e-5), (name, key)
+        unaligned = evo_stats(reference, run / name)
+        assert metrics["robot"][name]["unaligned"]["mean_m"] == pytest.approx(unaligned["mean"], abs=1e-5)
+    assert metrics["tags"]["1"]["error_m"] == pytest.approx(0.1, abs=1e-6)
+    assert metrics["tags"]["2"] == {"nlos": True, "localized": False}
+    table = run_rover("eval", str(run), "--truth", str(reference), "--tags", str(tags))
+    assert "trajectory_live.tum aligned" in table.stdout and "never localized" in table.stdout
+
+
+def test_rover_eval_bad_input(tmp_path):
+    run, reference, _tags = make_run(tmp_path)
+    (tmp_path / "bad.tum").write_text("1.0 2.0 oops\n")
+    proc = run_rover("eval", str(run), "--truth", str(tmp_path / "bad.tum"))
+    assert proc.returncode == 2 and "bad.tum:1:" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_rover("eval", str(run))
+    assert proc.returncode == 2 and "pass --truth" in proc.stderr
