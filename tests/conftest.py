@@ -76,3 +76,22 @@ def read_bag(path: Path) -> list[tuple[str, int, bytes]]:
 
     with path.open("rb") as f:
         return [(ch.topic, m.log_time, m.data) for _s, ch, m in make_reader(f).iter_messages(log_time_order=False)]
+
+
+@pytest.fixture(scope="session")
+def simulated(tmp_path_factory):
+    """Simulated datasets, made once per (scenario, seed, overrides) for the whole test session."""
+    cache: dict[tuple, Path] = {}
+    root = tmp_path_factory.mktemp("datasets")
+
+    def get(scenario: str = "paper", seed: int = 1, *overrides: str) -> Path:
+        key = (scenario, seed, overrides)
+        if key not in cache:
+            path = root / f"{scenario}-{seed}-{len(cache)}.mcap"
+            sets = [a for o in overrides for a in ("--set", o)]
+            run_rover("-q", "simulate", "--scenario", scenario, "--seed", str(seed), *sets, "-o", str(path),
+                      check=True, timeout=300)
+            cache[key] = path
+        return path
+
+    return get

@@ -250,3 +250,5 @@ def test_the_default_pipeline_on_three_hosts_gives_the_same_results(tmp_path):
     topics = {t for t, _s, _d in one}
     assert topics == {"/rover/aoa", "/rover/preintegration", "/rover/sweep", "/rover/pose", "/rover/trajectory",
                       "/rover/path", "/rover/tags", timing}
+    for name in ("trajectory.tum", "trajectory_live.tum", "tags.csv", "metrics.json"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "three" / name).read_bytes(), name
