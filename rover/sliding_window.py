@@ -65,6 +65,12 @@ class WindowSettings:
     """a wheeled base does not move sideways: its velocity is along its heading (linear given the gyro's)"""
     lateral_std_m_s: float = 0.02
     """how fast the robot may slip sideways"""
+    reset_updates: int = 20
+    """a tag whose bearings in the window mostly disagree with its estimate (Huber-active) for this
+    many updates in a row has its prior relaxed: the Gaussian prior of a tag first seen through
+    wrong-path bearings can otherwise hold it at the wrong place for good. 0 turns it off."""
+    reset_factor: float = 0.01
+    """how much of the tag's prior information is kept at such a reset"""
     observable_std_m: float = 0.5
     """a tag is reported localized once its position's largest standard deviation is below this"""
 
@@ -161,6 +167,9 @@ class SlidingWindow:
     finals: list[tuple[int, float, float, float]] = field(default_factory=list)
     """(stamp, x, y, yaw) of the epochs that left the window, in order"""
     tag_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    disagreement: dict[int, int] = field(default_factory=dict)
+    """per tag slot: consecutive updates in which most of its bearings were Huber-active"""
+    resets: int = 0
 
     @property
     def shape(self) -> Shape:
@@ -353,8 +362,28 @@ class SlidingWindow:
         residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
         result.huber_active = int(np.sum(np.abs(residual[filled]) > s.huber_sigma))
         self.x = x
+        self._check_consistency(tag[filled], np.abs(residual[filled]) > s.huber_sigma)
         self._covariances(epoch, tag, residual, jb, filled)
         return result
+
+    def _check_consistency(self, tags: np.ndarray, active: np.ndarray) -> None:
+        """Relax the prior of tags whose recent bearings keep disagreeing with their estimate."""
+        s = self.settings
+        if not s.reset_updates:
+            return
+        for t in range(len(self.tag_ids)):
+            mine = tags == t
+            if mine.sum() >= 3 and active[mine].mean() > 0.5:
+                self.disagreement[t] = self.disagreement.get(t, 0) + 1
+            elif mine.any():
+                self.disagreement[t] = 0
+            if self.disagreement.get(t, 0) >= s.reset_updates:
+                keep = np.ones(len(self.prior.mean))
+                keep[4 + 2 * t:6 + 2 * t] = math.sqrt(s.reset_factor)
+                p = self.prior
+                self.prior = Prior(p.info * np.outer(keep, keep), p.mean, p.grad * keep)
+                self.disagreement[t] = 0
+                self.resets += 1
 
     def _information(self, epoch, tag, residual, jb, filled) -> sp.csc_matrix:
         """The Gauss-Newton information of the window at the estimate (Huber rows IRLS-weighted)."""
