@@ -6,20 +6,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from bench_pipeline import free_port
+
 ROVER = [sys.executable, "-m", "rover.cli", "-q"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def duration_s(dataset: Path) -> float:
