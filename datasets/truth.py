@@ -103,7 +103,8 @@ def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthT
         with path.open("rb") as f:
             reader = make_reader(f)
             meta = {m.name: m.metadata for m in reader.iter_metadata()}
-            for schema, channel, message in reader.iter_messages(topics=["/groundtruth/pose", "/groundtruth/tags"]):
+            for schema, channel, message in reader.iter_messages(topics=["/groundtruth/pose", "/groundtruth/tags"],
+                                                                 log_time_order=False):
                 msg = deserialize(message.data, schema.name)
                 if channel.topic == "/groundtruth/tags":
                     tags = [TruthTag(t.id, t.channel, (t.position.x, t.position.y, t.position.z), False)
@@ -117,5 +118,7 @@ def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthT
         raise BadInput(f"{path}: cannot read the dataset's ground truth: {exc}") from None
     if "tags_csv" in meta.get("rover.truth", {}):
         tags = parse_tags_csv(meta["rover.truth"]["tags_csv"], f"{path} (metadata rover.truth)")
-    trajectory = Trajectory(np.array(stamps, dtype=np.int64), np.array(xyz), np.array(quat)) if stamps else None
+    order = np.argsort(np.array(stamps, dtype=np.int64), kind="stable")
+    trajectory = (Trajectory(np.array(stamps, dtype=np.int64)[order], np.array(xyz)[order], np.array(quat)[order])
+                  if stamps else None)
     return trajectory, tags
