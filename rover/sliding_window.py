@@ -66,9 +66,9 @@ class WindowSettings:
     lateral_std_m_s: float = 0.02
     """how fast the robot may slip sideways"""
     reset_updates: int = 20
-    """a tag whose bearings in the window mostly disagree with its estimate (Huber-active) for this
-    many updates in a row has its prior relaxed: the Gaussian prior of a tag first seen through
-    wrong-path bearings can otherwise hold it at the wrong place for good. 0 turns it off."""
+    """a localized tag whose bearings in the window mostly disagree with its estimate (Huber-active)
+    for this many updates in a row has its prior relaxed: the Gaussian prior of a tag first seen
+    through wrong-path bearings can otherwise hold it at the wrong place for good. 0 turns it off."""
     reset_factor: float = 0.01
     """how much of the tag's prior information is kept at such a reset"""
     observable_std_m: float = 0.5
@@ -371,9 +371,11 @@ class SlidingWindow:
         s = self.settings
         if not s.reset_updates:
             return
+        localized = np.zeros(len(self.tag_ids), bool)
+        localized[:len(self.tag_covariance)] = self.observable()
         for t in range(len(self.tag_ids)):
             mine = tags == t
-            if mine.sum() >= 3 and active[mine].mean() > 0.5:
+            if localized[t] and mine.sum() >= 3 and active[mine].mean() > 0.5:
                 self.disagreement[t] = self.disagreement.get(t, 0) + 1
             elif mine.any():
                 self.disagreement[t] = 0
