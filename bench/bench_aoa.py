@@ -89,7 +89,30 @@ def evaluate(rig, frames, truth: dict[int, float], nlos: set[int]) -> dict:
             figures[f"{key}_median_deg"] = float(np.median(e))
             figures[f"{key}_p90_deg"] = float(np.percentile(e, 90))
     figures["error_over_std_rms"] = float(np.sqrt(np.mean(np.square(errors["z"]))))
-    return figures
+    figures["error_over_std_median"] = float(np.median(errors["z"]))
+    return figures, errors
+
+
+def plot_cdf(curves: dict[str, list[float]], path: Path) -> None:
+    """The AoA error CDF in the style of the paper's Fig. 5a."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, e in curves.items():
+        if e:
+            e = np.sort(e)
+            ax.plot(e, np.arange(1, len(e) + 1) / len(e), label=f"{label} (median {np.median(e):.1f} deg)",
+                    ls="--" if "Bartlett" in label else "-")
+    ax.set_xlim(0, 60)
+    ax.set_xlabel("AoA error (deg)")
+    ax.set_ylabel("CDF")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main() -> None:
@@ -98,13 +121,18 @@ def main() -> None:
     ap.add_argument("--json")
     args = ap.parse_args()
     results: dict = {}
+    curves: dict[str, list[float]] = {"paper LOS": [], "paper NLOS": [], "paper LOS, Bartlett": [],
+                                      "paper NLOS, Bartlett": [], "recording_sample": []}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             path = Path(tmp) / f"paper-{seed}.mcap"
             scenario = load_scenario("paper")
             simulate(scenario, seed, path)
             rig, frames, truth = load(path)
-            results[f"paper_seed{seed}"] = evaluate(rig, frames, truth, {t.id for t in scenario.tags if t.nlos})
+            results[f"paper_seed{seed}"], errors = evaluate(rig, frames, truth, {t.id for t in scenario.tags if t.nlos})
+            for kind, label in (("los", "LOS"), ("nlos", "NLOS")):
+                curves[f"paper {label}"] += errors[kind]
+                curves[f"paper {label}, Bartlett"] += errors[f"bartlett_{kind}"]
         sample = Path(os.environ.get("ROVER_TEST_DATA", ROOT.parent / "shared" / "data")) / "recording_sample"
         if sample.is_dir():
             path = Path(tmp) / "sample.mcap"
@@ -112,15 +140,19 @@ def main() -> None:
             rig, frames, _ = load(path)
             truth = {int(r["stamp_ns"]): math.radians(float(r["aoa_deg"]))
                      for r in csv.DictReader((sample / "truth_csi.csv").open())}
-            results["recording_sample"] = evaluate(rig, frames, truth, set())
+            results["recording_sample"], errors = evaluate(rig, frames, truth, set())
+            curves["recording_sample"] = errors["los"]
     for name, f in results.items():
         line = (f"aoa {name}: LOS median {f['los_median_deg']:.1f} deg (p90 {f['los_p90_deg']:.1f}), Bartlett "
                 f"{f['bartlett_los_median_deg']:.1f} deg")
         if "nlos_median_deg" in f:
             line += (f"; NLOS median {f['nlos_median_deg']:.1f} deg (p90 {f['nlos_p90_deg']:.1f}), Bartlett "
                      f"{f['bartlett_nlos_median_deg']:.1f} deg")
-        line += f"; {f['packets_per_cpu_s']:,.0f} packets/s; rms(error/std) {f['error_over_std_rms']:.2f}"
+        line += (f"; {f['packets_per_cpu_s']:,.0f} packets/s; error/std rms {f['error_over_std_rms']:.2f}, "
+                 f"median {f['error_over_std_median']:.2f}")
         print(line)
+    plot_cdf(curves, ROOT / "bench" / "aoa_cdf.png")
+    print(f"wrote {ROOT / 'bench' / 'aoa_cdf.png'}")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
 

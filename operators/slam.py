@@ -89,6 +89,7 @@ class Slam(Operator):
         self.speed: tuple[int, float] | None = None
         self.updates = 0
         self.failures = 0
+        self.unchained = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "aoa":
@@ -125,7 +126,7 @@ class Slam(Operator):
             ids, angles, stds = self._take(start)
             w.add_epoch(start, yaw_of(msg.orientation_start), ids, angles, stds, None)
         elif w.epochs and start != w.epochs[-1].stamp_ns:
-            self.dropped["odometry not continuing the previous epoch (chained anyway)"] += 1
+            self.unchained += 1
         if msg.dt <= 0 or not np.isfinite(np.asarray(msg.covariance)).all():
             self.dropped["odometry with no duration or a non-finite covariance"] += 1
             return
@@ -199,6 +200,9 @@ class Slam(Operator):
             self.dropped["AoAs after the last IMU epoch"] += sum(len(v) for v in self.pending.values())
         if self.dropped:
             log.warning("slam: dropped %s", ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items())))
+        if self.unchained:
+            log.warning("slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)",
+                        self.unchained)
         if self.failures:
             log.warning("slam: %d of %d updates did not converge (kept the previous estimate)",
                         self.failures, self.updates)
