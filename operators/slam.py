@@ -27,6 +27,7 @@ log = logging.getLogger("rover.slam")
 PREINTEGRATION_XY = [3, 4, 6, 7]
 """velocity x/y and position x/y in the Preintegration covariance's [rotation, velocity, position]"""
 COVARIANCE_FLOOR = 1e-12
+"""smallest eigenvalue kept in an odometry covariance (m^2, (m/s)^2): keeps it positive definite"""
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,8 @@ def edge_of(msg: Any) -> Edge:
     """The x/y odometry of a Preintegration message."""
     delta = np.array([msg.delta_velocity.x, msg.delta_velocity.y, msg.delta_position.x, msg.delta_position.y])
     cov = np.asarray(msg.covariance, float).reshape(9, 9)[np.ix_(PREINTEGRATION_XY, PREINTEGRATION_XY)]
-    cov = 0.5 * (cov + cov.T) + np.eye(4) * COVARIANCE_FLOOR
+    values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
+    cov = (vectors * np.maximum(values, COVARIANCE_FLOOR)) @ vectors.T
     return Edge(float(msg.dt), delta, cov)
 
 
@@ -204,6 +206,9 @@ class Slam(Operator):
             self.dropped["AoAs after the last IMU epoch"] += sum(len(v) for v in self.pending.values())
         if self.dropped:
             log.warning("slam: dropped %s", ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items())))
+        if self.params.wheel and self.speed is None:
+            log.warning("slam: no wheel odometry arrived: the speed came from the IMU alone, which leaves the "
+                        "scale poorly determined (expect errors of metres; see the README's benchmarks)")
         if self.unchained:
             log.warning("slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)",
                         self.unchained)
