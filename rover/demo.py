@@ -79,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in sorted(args.output.iterdir()):
         if not path.name.startswith("."):
             console.print(f"  {path}")
-    console.print("Open results.mcap in Foxglove; compare with `rover eval` or "
-                  f"`evo_ape tum <truth.tum> {args.output / 'trajectory.tum'} -a`.")
+    console.print(f"Open results.mcap in Foxglove; `rover eval {args.output}` prints every error "
+                  "(trajectory.tum is a TUM file evo reads too).")
     return 0
 
 
