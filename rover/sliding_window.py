@@ -100,9 +100,13 @@ class Edge:
     covariance: np.ndarray
     chol: np.ndarray = field(init=False, repr=False)
     """the covariance's Cholesky factor (the program's odometry rows are whitened by it)"""
+    block: np.ndarray = field(init=False, repr=False)
+    """L'WL over [p_k, v_k, p_k+1, v_k+1]: the edge's information, for covariances"""
 
     def __post_init__(self) -> None:
         self.chol = np.linalg.cholesky(self.covariance)
+        l = edge_matrix(np.array([self.dt]))[0]
+        self.block = l.T @ np.linalg.solve(self.covariance, l)
 
 
 @dataclass
@@ -397,9 +401,7 @@ class SlidingWindow:
         cols = [np.tile(pri, len(pri))]
         vals = [self.prior.info.ravel()]
         if self.edges:
-            l = edge_matrix(np.array([e.dt for e in self.edges]))
-            weight = np.linalg.inv(np.stack([e.covariance for e in self.edges]))
-            blocks = np.einsum("nji,njk,nkl->nil", l, weight, l)
+            blocks = np.stack([e.block for e in self.edges])
             idx = 4 * np.arange(len(self.edges))[:, None] + np.arange(8)
             rows.append(np.repeat(idx[:, :, None], 8, axis=2).ravel())
             cols.append(np.repeat(idx[:, None, :], 8, axis=1).ravel())
