@@ -150,6 +150,22 @@ def huber_cost(r: np.ndarray, m: float) -> np.ndarray:
     return np.where(a <= m, a ** 2, 2 * m * a - m ** 2)
 
 
+def huber_weight(r: np.ndarray, m: float) -> np.ndarray:
+    """The IRLS weight of the Huber loss: 1 inside the threshold, m/|r| beyond."""
+    return np.minimum(1.0, m / np.maximum(np.abs(r), 1e-12))
+
+
+def angle_residuals(delta: np.ndarray, bearing: np.ndarray, std: np.ndarray,
+                    min_range_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bearing residuals in std units for robot-to-tag vectors `delta`, and their gradients with
+    respect to the tag position (the robot's gradient is the opposite)."""
+    range2 = np.maximum(np.sum(delta ** 2, axis=1), min_range_m ** 2)
+    predicted = np.arctan2(delta[:, 1], delta[:, 0])
+    measured = np.arctan2(bearing[:, 1], bearing[:, 0])
+    residual = wrap(predicted - measured) / std
+    return residual, np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * std)[:, None]
+
+
 GN_HINGE_WEIGHT = 1e-6
 """the Gauss-Newton steps need no cheirality (the angle residual has it); a tiny weight keeps h unique"""
 PV_FROM_VP = [2, 3, 0, 1]
@@ -269,13 +285,8 @@ class SlidingWindow:
 
     def _angles(self, x, epoch, tag, bearing, std, filled) -> tuple[np.ndarray, np.ndarray]:
         """Angle residuals in std units and their gradients with respect to the tag position."""
-        delta = self._offsets(x, epoch, tag)
-        range2 = np.maximum(np.sum(delta ** 2, axis=1), self.settings.min_range_m ** 2)
-        predicted = np.arctan2(delta[:, 1], delta[:, 0])
-        measured = np.arctan2(bearing[:, 1], bearing[:, 0])
-        residual = np.where(filled, wrap(predicted - measured) / std, 0.0)
-        jb = np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * std)[:, None]
-        return residual, np.where(filled[:, None], jb, 0.0)
+        residual, jb = angle_residuals(self._offsets(x, epoch, tag), bearing, std, self.settings.min_range_m)
+        return np.where(filled, residual, 0.0), np.where(filled[:, None], jb, 0.0)
 
     def _model(self) -> _Model:
         """The update's fixed numbers, stacked once."""
@@ -334,7 +345,7 @@ class SlidingWindow:
                 result.iterations += iterations
                 offsets = self._offsets(x, epoch, tag)
                 r = np.einsum("ij,ij->i", perp, offsets) * scale
-                weight = np.minimum(1.0, s.huber_sigma / np.maximum(np.abs(r), 1e-12))
+                weight = huber_weight(r, s.huber_sigma)
                 settled = d
                 d = np.maximum(np.linalg.norm(offsets, axis=1), s.min_range_m)
                 unsure = filled & (weight >= 1.0) & ~localized[np.maximum(tag, 0)]
@@ -395,7 +406,7 @@ class SlidingWindow:
         """The Gauss-Newton information of the window at the estimate (Huber rows IRLS-weighted)."""
         shape = self.shape
         m = self.settings.huber_sigma
-        w = np.where(filled, np.minimum(1.0, m / np.maximum(np.abs(residual), 1e-12)), 0.0)
+        w = np.where(filled, huber_weight(residual, m), 0.0)
         pri = prior_indices(shape)
         rows = [np.repeat(pri, len(pri))]
         cols = [np.tile(pri, len(pri))]
@@ -460,11 +471,8 @@ class SlidingWindow:
         grad[2:4] += old.velocity_info @ x[2:4] - old.velocity_linear
         if len(old.tags):
             delta = x[4 * e:].reshape(-1, 2)[old.tags] - x[0:2]
-            range2 = np.maximum(np.sum(delta ** 2, axis=1), s.min_range_m ** 2)
-            measured = np.arctan2(old.bearing[:, 1], old.bearing[:, 0])
-            r = wrap(np.arctan2(delta[:, 1], delta[:, 0]) - measured) / old.std
-            w = np.minimum(1.0, s.huber_sigma / np.maximum(np.abs(r), 1e-12))
-            jb = np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * old.std)[:, None]
+            r, jb = angle_residuals(delta, old.bearing, old.std, s.min_range_m)
+            w = huber_weight(r, s.huber_sigma)
             for j, t in enumerate(old.tags):
                 cols = np.concatenate([[0, 1], 4 + 2 * t + np.arange(2)])
                 row = np.concatenate([-jb[j], jb[j]])
