@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-from rover.datasets.truth import read_dataset_truth
-from rover.evaluation import Poses2D, trajectory_errors, yaw_from_quaternion
-from rover.messages import deserialize
+from rover.evaluation import Poses2D, poses_of_messages, trajectory_errors, yaw_from_quaternion
+from rover.messages import deserialize, stamp_ns
+from rover.run_record import load_truth
 from rover.operators.slam import Slam, SlamParams
 
 PAPER = {"robot_mean_m": 0.393, "los_tags_mean_m": 0.746, "nlos_tag_m": 1.459}
@@ -36,17 +36,6 @@ def read(path: Path, topics: list[str]) -> list[tuple[str, int, object]]:
     with path.open("rb") as f:
         return [(ch.topic, m.log_time, deserialize(m.data, s.name))
                 for s, ch, m in make_reader(f).iter_messages(topics=topics)]
-
-
-def stamp_of(msg) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
-def poses(msgs) -> Poses2D:
-    q = [m.pose.orientation for m in msgs]
-    return Poses2D(np.array([stamp_of(m) for m in msgs], dtype=np.int64),
-                   np.array([[m.pose.position.x, m.pose.position.y] for m in msgs]).reshape(-1, 2),
-                   yaw_from_quaternion(*(np.array([getattr(o, k) for o in q]) for k in "xyzw")))
 
 
 def front_end(dataset: Path, out: Path) -> Path:
@@ -77,8 +66,8 @@ def run_slam(items, params: SlamParams, limit_epochs: int | None = None) -> tupl
 
 
 def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
-    final = poses([e.msg for e in out if e.port == "trajectory"])
-    live = poses([e.msg for e in out if e.port == "pose"])
+    final = poses_of_messages([e.msg for e in out if e.port == "trajectory"])
+    live = poses_of_messages([e.msg for e in out if e.port == "pose"])
     errors = trajectory_errors(truth, final)
     live_errors = trajectory_errors(truth, live) if len(live.stamp_ns) > 1 else None
     arrays = [e.msg for e in out if e.port == "tags"]
@@ -86,8 +75,8 @@ def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
     tags = {}
     for tag in arrays[-1].tags:
         where = errors.to_start.apply(np.array([truth_tags[tag.id]]))[0]
-        heard = next(stamp_of(a) for a in arrays if any(t.id == tag.id for t in a.tags))
-        localized = next((stamp_of(a) for a in arrays if any(t.id == tag.id and t.observable for t in a.tags)), None)
+        heard = next(stamp_ns(a) for a in arrays if any(t.id == tag.id for t in a.tags))
+        localized = next((stamp_ns(a) for a in arrays if any(t.id == tag.id and t.observable for t in a.tags)), None)
         tags[tag.id] = {"error_m": float(math.hypot(tag.position.x - where[0], tag.position.y - where[1])),
                         "nlos": tag.id in nlos, "observable": bool(tag.observable),
                         "first_heard_s": (heard - t0) / 1e9,
@@ -104,15 +93,14 @@ def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
 
 
 def truth_of(dataset: Path) -> tuple[Poses2D, dict, set[int]]:
-    trajectory, tags = read_dataset_truth(dataset)
-    truth = Poses2D(trajectory.stamp_ns, trajectory.xyz[:, :2], yaw_from_quaternion(*trajectory.quat_xyzw.T))
-    return truth, {t.id: t.xyz[:2] for t in tags}, {t.id for t in tags if t.nlos}
+    truth = load_truth(dataset)
+    return truth.trajectory, {i: xy for i, (xy, _nlos) in truth.tags.items()}, {i for i, (_xy, n) in truth.tags.items() if n}
 
 
 def heading_drift_deg(items, truth: Poses2D) -> float:
     """Largest gap between the gyro heading the SLAM uses and the true heading (start-frame)."""
     pre = [m for t, _s, m in items if t == "/rover/preintegration"]
-    stamps = np.array([stamp_of(m) for m in pre])
+    stamps = np.array([stamp_ns(m) for m in pre])
     yaw = np.array([yaw_from_quaternion(m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w)
                     for m in pre])
     k = np.clip(np.searchsorted(truth.stamp_ns, stamps), 0, len(truth.stamp_ns) - 1)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from rover.evaluation import Poses2D, evaluate, yaw_from_quaternion
+from rover.evaluation import evaluate, poses_of_messages
 from rover.figures import write_figures
 from rover.messages import stamp_ns
 from rover.operator import In, Operator
@@ -40,14 +40,6 @@ def seconds(ns: int | None) -> str:
 def tum_line(msg: Any) -> str:
     p, q = msg.pose.position, msg.pose.orientation
     return f"{seconds(stamp_ns(msg))} {p.x:.6f} {p.y:.6f} {p.z:.6f} {q.x:.9f} {q.y:.9f} {q.z:.9f} {q.w:.9f}\n"
-
-
-def poses_of_messages(msgs: list[Any]) -> Poses2D:
-    q = np.array([[m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w]
-                  for m in msgs]).reshape(-1, 4)
-    return Poses2D(np.array([stamp_ns(m) for m in msgs], dtype=np.int64),
-                   np.array([[m.pose.position.x, m.pose.position.y] for m in msgs]).reshape(-1, 2),
-                   yaw_from_quaternion(*q.T))
 
 
 def write_atomic(path: Path, text: str) -> None:

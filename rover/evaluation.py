@@ -39,6 +39,16 @@ def yaw_from_quaternion(qx, qy, qz, qw):
     return np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
 
 
+def poses_of_messages(msgs: list) -> Poses2D:
+    """Planar poses of geometry_msgs/PoseStamped messages, in the given order."""
+    q = np.array([[m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w]
+                  for m in msgs]).reshape(-1, 4)
+    stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs]
+    return Poses2D(np.array(stamps, dtype=np.int64),
+                   np.array([[m.pose.position.x, m.pose.position.y] for m in msgs]).reshape(-1, 2),
+                   yaw_from_quaternion(*q.T))
+
+
 def associate(reference: Poses2D, estimate: Poses2D, max_diff_s: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (reference, estimate) of the nearest stamps within `max_diff_s` (evo's --t_max_diff)."""
     ref = reference.stamp_ns
