@@ -50,8 +50,9 @@ class FixedPattern:
     def data(self, values: np.ndarray) -> np.ndarray:
         return np.bincount(self.inverse, weights=values, minlength=self.nnz)
 
-    def matrix(self, values: np.ndarray) -> sp.csc_matrix:
-        return sp.csc_matrix((self.data(values), self.indices, self.indptr), shape=self.shape)
+    def matrix(self, data: np.ndarray) -> sp.csc_matrix:
+        """The matrix of CSC `data` (as `data` returns it)."""
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape)
 
 
 @dataclass(frozen=True)
@@ -194,9 +195,8 @@ class WindowProgram:
         b[self.equalities::4] = -d.offset
         b[self.equalities + 1::4] = d.offset
         if self.solver is None:
-            pm = sp.csc_matrix((p, self.p_pattern.indices, self.p_pattern.indptr), shape=self.p_pattern.shape)
-            am = sp.csc_matrix((a_data, self.a_pattern.indices, self.a_pattern.indptr), shape=self.a_pattern.shape)
-            self.solver = clarabel.DefaultSolver(pm, q, am, b, self.cones, self.settings)
+            self.solver = clarabel.DefaultSolver(self.p_pattern.matrix(p), q, self.a_pattern.matrix(a_data), b,
+                                                 self.cones, self.settings)
         else:
             self.solver.update(P=p, q=q, A=a_data, b=b)
         solution = self.solver.solve()
