@@ -161,9 +161,9 @@ class JointMusic:
         ia, idl = np.unravel_index(top, s.shape[1:])
         p = np.arange(len(s))[:, None]
         centre = s[p, ia, idl]
-        da = _parabola(s[p, (ia - 1) % na, idl], centre, s[p, (ia + 1) % na, idl])
+        da = parabola_offset(s[p, (ia - 1) % na, idl], centre, s[p, (ia + 1) % na, idl])
         inner = (idl > 0) & (idl < nd - 1)
-        dd = np.where(inner, _parabola(s[p, ia, np.maximum(idl - 1, 0)], centre, s[p, ia, np.minimum(idl + 1, nd - 1)]), 0)
+        dd = np.where(inner, parabola_offset(s[p, ia, np.maximum(idl - 1, 0)], centre, s[p, ia, np.minimum(idl + 1, nd - 1)]), 0)
         angle_step = self.angles[1] - self.angles[0]
         delay_step = self.delays[1] - self.delays[0]
         angle = np.angle(np.exp(1j * (self.angles[ia] + da * angle_step)))
@@ -172,7 +172,7 @@ class JointMusic:
         return Peaks(angle, delay, np.where(height > 0, norm, 0.0))
 
 
-def _parabola(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> np.ndarray:
+def parabola_offset(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> np.ndarray:
     """Offset in grid steps of the vertex of the parabola through three equally spaced points."""
     denom = left - 2 * centre + right
     return np.where(np.abs(denom) > 1e-30, np.clip(0.5 * (left - right) / np.where(denom == 0, 1, denom), -0.5, 0.5), 0.0)
