@@ -2,12 +2,12 @@
 
 Each packet is cleaned and smoothed (rover.music); the burst's covariances are averaged (the
 packets see the same paths, their random common phases cancel in the covariance), and joint
-angle-delay MUSIC on that average gives the paths. Among the strong peaks, the one with the
-smallest delay is the direct path (SpotFi's insight: reflections travel farther). Measured on
-simulated bursts, this beats clustering per-packet peaks, whose spurious small-delay peaks
-win too often. The reported standard deviation has a floor for what a burst cannot show
-(multipath bias, calibration error) and grows with strong competing peaks at other angles and
-where the array is nearly ambiguous.
+angle-delay MUSIC on that average gives the paths. The strongest peak is the direct path unless
+a weaker one clearly arrives earlier (SpotFi's insight: reflections travel farther). Measured on
+simulated bursts, this beats clustering per-packet peaks, whose spurious small-delay peaks win
+too often. The choice is checked against the power each direction explains, and the reported
+standard deviation comes from what a single plane wave from the reported angle leaves
+unexplained and from the strongest rival direction (see `burst_std`).
 """
 
 from __future__ import annotations

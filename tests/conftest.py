@@ -92,6 +92,6 @@ def simulated(tmp_path_factory):
             run_rover("-q", "simulate", "--scenario", scenario, "--seed", str(seed), *sets, "-o", str(path),
                       check=True, timeout=300)
             cache[key] = path
-        return path
+        return cache[key]
 
     return get

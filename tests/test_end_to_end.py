@@ -81,13 +81,16 @@ def test_sample_recording_convert_run_eval(tmp_path):
             k = int(np.argmin(np.abs(stamps - s)))
             errors.append(abs(math.remainder(aoa.angle_rad - truth[int(stamps[k])], 2 * math.pi)))
     assert math.degrees(float(np.median(errors))) <= 10.0
-    tag3 = [row for row in csv.DictReader((sample / "truth_tags.csv").open()) if row["id"] == "3"][0]
-    where = np.array([float(tag3["x"]), float(tag3["y"])])
+    truth_tags = {int(r["id"]): np.array([float(r["x"]), float(r["y"])])
+                  for r in csv.DictReader((sample / "truth_tags.csv").open())}
+    last = {}
     for topic, _log, data in read_bag(tmp_path / "run" / "results.mcap"):
         if topic == "/rover/tags":
             for tag in deserialize(data, "rover_msgs/msg/TagArray").tags:
-                if tag.id == 3 and tag.observable:
-                    error = np.linalg.norm(np.array([tag.position.x, tag.position.y]) - where)
-                    major = math.sqrt(np.linalg.eigvalsh(np.reshape(tag.covariance_xy, (2, 2)))[-1])
-                    assert major >= error, "tag 3 reported observable with a covariance smaller than its error"
+                error = np.array([tag.position.x, tag.position.y]) - truth_tags[tag.id]
+                last[tag.id] = (tag.observable, float(np.linalg.norm(error)))
+                if tag.observable:
+                    mahalanobis = math.sqrt(error @ np.linalg.solve(np.reshape(tag.covariance_xy, (2, 2)), error))
+                    assert mahalanobis <= 3.5, f"tag {tag.id} reported {mahalanobis:.1f} sigma from the truth"
+    assert sorted(last) == [1, 2, 3] and all(observable and error < 0.5 for observable, error in last.values()), last
     assert metrics["robot"]["trajectory.tum"]["unaligned"]["mean_m"] < 0.393
