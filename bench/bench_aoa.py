@@ -1,5 +1,6 @@
 """AoA accuracy and speed: the `aoa` operator on simulated `paper` runs (several seeds) and on the
-independent `recording_sample`, beside a plain Bartlett beamformer on the same bursts.
+independent `recording_sample`, beside a plain Bartlett beamformer on the same bursts; and the
+`paper` room with walls that do not reflect, to show what is the estimator and what is multipath.
 Goals (issue 5): median <= 5 deg LOS, <= 12 deg NLOS on `paper`; >= 2,000 packets/s on one core; the
 reported std tracks the error (|error| / std should spread like a unit Gaussian's)."""
 
@@ -136,6 +137,10 @@ def main() -> None:
             for kind, label in (("los", "LOS"), ("nlos", "NLOS")):
                 curves[f"paper {label}"] += errors[kind]
                 curves[f"paper {label}, Bartlett"] += errors[f"bartlett_{kind}"]
+        path = Path(tmp) / "paper-no-reflections.mcap"
+        scenario = load_scenario("paper", {"room.wall_reflection": "0"})
+        simulate(scenario, args.seeds[0], path)
+        results["paper_no_reflections"], _ = evaluate(*load(path), {t.id for t in scenario.tags if t.nlos})
         sample = Path(os.environ.get("ROVER_TEST_DATA", ROOT.parent / "shared" / "data")) / "recording_sample"
         if sample.is_dir():
             path = Path(tmp) / "sample.mcap"

@@ -72,10 +72,15 @@ class AoaParams:
     """remove each packet's sampling-time-offset phase slope (off only to show what it is worth)"""
 
 
+def steering(antennas_m: np.ndarray, freq_hz: float, angles: np.ndarray) -> np.ndarray:
+    """Antenna phases (N, M) of a plane wave from each angle."""
+    u = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    return np.exp(2j * np.pi * freq_hz * (u @ antennas_m.T) / SPEED_OF_LIGHT_M_S)
+
+
 def manifold_correlation(antennas_m: np.ndarray, freq_hz: float, angles: np.ndarray) -> np.ndarray:
     """|a(i)^H a(j)| / M for all pairs of the given angles."""
-    u = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    a = np.exp(2j * np.pi * freq_hz * (u @ antennas_m.T) / SPEED_OF_LIGHT_M_S)
+    a = steering(antennas_m, freq_hz, angles)
     return np.abs(a @ a.conj().T) / len(antennas_m)
 
 
@@ -122,25 +127,27 @@ class ArrayResponse:
     directions outside each other's main lobe (0 inside it; the main lobe ends at the first minimum)."""
 
     def __init__(self, antennas_m: np.ndarray, freq_hz: float):
-        angles = np.radians(np.arange(360.0))
-        u = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        self.steering = np.exp(2j * np.pi * freq_hz * (u @ antennas_m.T) / SPEED_OF_LIGHT_M_S)   # (360, M)
+        self.steering = steering(antennas_m, freq_hz, np.radians(np.arange(360.0)))      # (360, M)
         corr = np.abs(self.steering @ self.steering.conj().T) / len(antennas_m)
-        index = (np.arange(360)[:, None] + np.arange(360)[None, :]) % 360
-        by_offset = corr[np.arange(360)[:, None], index]                  # [i, d] = corr(i, i + d)
-        rising = np.diff(by_offset[:, :181], axis=1) > 0
-        edge = np.where(rising.any(axis=1), np.argmax(rising, axis=1), 180)
-        offset = np.minimum(np.arange(360), 360 - np.arange(360))
+        rows = np.arange(360)[:, None]
+        index = (rows + np.arange(360)[None, :]) % 360
+        by_offset = corr[rows, index]                                      # [i, d] = corr(i, i + d)
+
+        def lobe_edge(side: np.ndarray) -> np.ndarray:
+            """Offset of the first minimum along one side (offsets 0..180)."""
+            rising = np.diff(side, axis=1) > 0
+            return np.where(rising.any(axis=1), np.argmax(rising, axis=1), 180)
+
+        ccw = lobe_edge(by_offset[:, :181])
+        cw = lobe_edge(by_offset[:, (360 - np.arange(181)) % 360])
+        d = np.arange(360)[None, :]
         outside = np.zeros((360, 360), dtype=bool)
-        outside[np.arange(360)[:, None], index] = offset[None, :] > edge[:, None]
+        outside[rows, index] = ((d <= 180) & (d > ccw[:, None])) | ((d > 180) & (360 - d > cw[:, None]))
         self.sidelobe = np.where(outside, corr, 0.0)
 
     @staticmethod
     def degree(angle) -> np.ndarray:
         return np.rint(np.degrees(angle)).astype(int) % 360
-
-    def between(self, a, b) -> np.ndarray:
-        return self.sidelobe[self.degree(a), self.degree(b)]
 
     def worst(self, a) -> np.ndarray:
         return self.sidelobe[self.degree(a)].max(axis=-1)
@@ -326,7 +333,8 @@ class Aoa(Operator):
         direction = check_energy(angle, peaks.delay[0], best, energy, response, self.field, self.params)
         theta, tau, used = direction.angle_rad, float(peaks.delay[0, best]), len(csi)
         if direction.switched:
-            tau = float(peaks.delay[0, np.argmin(np.abs(np.angle(np.exp(1j * (angle - theta)))))])
+            distance = np.where(peaks.height[0] > 0, np.abs(np.angle(np.exp(1j * (angle - theta)))), np.inf)
+            tau = float(peaks.delay[0, np.argmin(distance)])
         quality = QUALITY_SWITCHED if direction.switched else QUALITY_GOOD
         if direction.rival_power > direction.power * RIVAL_SHARE:
             quality = quality or QUALITY_RIVAL
