@@ -316,7 +316,10 @@ class Aoa(Operator):
         offsets = self.rig.phase_offsets(msg0.channel) if self.params.calibrate else None
         clean = music.clean(csi, offsets, sto=self.params.remove_sto)
         cov = music.covariance(clean).mean(axis=0, keepdims=True)
-        spectrum, _paths = music.spectrum(cov)
+        spectrum, paths = music.spectrum(cov)
+        if paths[0] == 0:
+            self.skipped["bursts too noisy (no path above the noise)"] += 1
+            return
         peaks = music.refine(music.peaks(spectrum, k=self.params.max_paths))
         angle = peaks.angle[0]
         if self.half_plane_normal is not None:
@@ -324,7 +327,7 @@ class Aoa(Operator):
             behind = u @ self.half_plane_normal < 0
             mirror = 2 * math.atan2(-self.half_plane_normal[0], self.half_plane_normal[1])
             angle = np.where(behind, np.angle(np.exp(1j * (mirror - angle))), angle)
-        best = choose_direct(peaks.delay[0], peaks.height[0], int(_paths[0]), self.params)
+        best = choose_direct(peaks.delay[0], peaks.height[0], int(paths[0]), self.params)
         if best is None:
             self.skipped["bursts without a spectrum peak"] += 1
             return

@@ -95,13 +95,15 @@ class JointMusic:
         return np.einsum("pwi,pwj->pij", x, x.conj()) / len(self.windows)
 
     def spectrum(self, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """MUSIC pseudo-spectrum over the (angle, delay) grid, (P, Na, Nd), and the number of paths used."""
+        """MUSIC pseudo-spectrum over the (angle, delay) grid, (P, Na, Nd), and the number of paths found
+        above the noise (0: noise only; the spectrum then uses one)."""
         values, vectors = np.linalg.eigh(cov)                        # ascending
         values = np.maximum(values[:, ::-1], 0)
         vectors = vectors[:, :, ::-1]
         noise = np.median(values[:, values.shape[1] // 2:], axis=1, keepdims=True) + 1e-30
         floor = np.maximum(NOISE_FACTOR * noise, values[:, :1] * PATH_FLOOR)
-        paths = np.clip(np.sum(values > floor, axis=1), 1, self.max_paths)
+        found = np.minimum(np.sum(values > floor, axis=1), self.max_paths)
+        paths = np.maximum(found, 1)
         signal = vectors[:, :, :self.max_paths] * (np.arange(self.max_paths)[None, :] < paths[:, None])[:, None, :]
         m, l = len(self.antennas), self.window
         e = signal.reshape(signal.shape[0], m, l, self.max_paths).transpose(0, 3, 1, 2).conj()   # (P, K, M, L)
@@ -115,7 +117,7 @@ class JointMusic:
             captured = np.sum(projection.real ** 2 + projection.imag ** 2, axis=2)              # (Na, P, Nd)
             out[start:start + p] = 1.0 / np.maximum(m * l - captured.transpose(1, 0, 2), 1e-9 * m * l)
         self._signal = e
-        return out, paths
+        return out, found
 
     def refine(self, peaks: Peaks) -> Peaks:
         """Search a fine grid (one coarse step either side) around each peak, with the signal subspace

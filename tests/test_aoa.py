@@ -117,6 +117,10 @@ def test_garbage_input_gives_no_estimate_and_no_crash(caplog):
     assert estimate(nan) == []
     assert estimate(synthetic([(0.5, 1e-8, 1.0)], packets=1)) == []
     assert "bursts with too few packets" in caplog.text or "empty or invalid" in caplog.text
+    noise = np.random.default_rng(4).standard_normal((7, 30, 3, 2)) @ np.array([1, 1j]) * 30
+    assert estimate(noise) == [] and "1 bursts too noisy" in caplog.text
+    (faint,) = estimate(synthetic([(0.7, 2e-8, 1.0)], packets=7, snr_db=-5, seed=5))
+    assert faint.std_rad > math.radians(10)
 
 
 def run_frames(rig, frames) -> list:
