@@ -8,13 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from conftest import reference_data
+from conftest import read_bag, reference_data
 from rover.drivers.intel5300 import decode_bfee
 from rover.errors import BadInput
 from rover.messages import deserialize, header, make, stamp_ns
 from rover.operators.aoa import (QUALITY_AMBIGUOUS, QUALITY_GOOD, Aoa, AoaParams, ArrayResponse, burst_std,
                                  check_energy, check_geometry)
 from rover.rig import load_rig, rig_from_text
+from rover.run_record import load_truth
 from rover.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, subcarrier_freqs_hz
 
 D = 0.0258
@@ -149,19 +150,12 @@ def errors_against(out: list, truth: dict[int, float]) -> tuple[np.ndarray, np.n
     return errors, np.radians(errors) / np.array([aoa.std_rad for aoa in out])
 
 
-def read_mcap(path, topics):
-    from mcap.reader import make_reader
-
-    with path.open("rb") as f:
-        reader = make_reader(f)
-        return [(c.topic, m.log_time, m.data) for _s, c, m in reader.iter_messages(topics=topics)]
-
-
 def test_the_independent_recording_within_10_degrees_with_an_honest_std():
     data = reference_data() / "recording_sample"
     rig = load_rig(data / "setup.yaml")
     truth = {int(r["stamp_ns"]): math.radians(float(r["aoa_deg"])) for r in csv.DictReader((data / "truth_csi.csv").open())}
-    frames = [deserialize(raw, "rover_msgs/msg/CsiFrame") for _t, _s, raw in read_mcap(data / "bag" / "bag.mcap", ["/csi"])]
+    frames = [deserialize(raw, "rover_msgs/msg/CsiFrame") for topic, _s, raw in read_bag(data / "bag" / "bag.mcap")
+              if topic == "/csi"]
     out = run_frames(rig, frames)
     errors, z = errors_against(out, truth)
     assert len(out) > 1000
@@ -178,13 +172,14 @@ def test_the_simulated_paper_room(simulated):
     with path.open("rb") as f:
         meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     rig = rig_from_text(meta["rover.setup"]["yaml"])
-    messages = read_mcap(path, ["/csi", "/groundtruth/aoa"])
+    messages = read_bag(path)
     frames = [deserialize(raw, "rover_msgs/msg/CsiFrame") for topic, _s, raw in messages if topic == "/csi"]
     truth = {stamp: deserialize(raw, "rover_msgs/msg/Aoa").angle_rad for topic, stamp, raw in messages
              if topic == "/groundtruth/aoa"}
+    nlos_tags = {i for i, (_xy, nlos) in load_truth(path).tags.items() if nlos}
     out = run_frames(rig, frames)
     errors, z = errors_against(out, truth)
-    nlos = np.array([aoa.tag_id == 4 for aoa in out])
+    nlos = np.array([aoa.tag_id in nlos_tags for aoa in out])
     assert np.median(errors[~nlos]) <= 6.0 and np.median(errors[nlos]) <= 16.0
     assert 0.4 <= np.median(z) <= 1.0 and np.mean(z < 3) >= 0.9, (np.median(z), np.mean(z < 3))
 
