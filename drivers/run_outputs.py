@@ -79,7 +79,7 @@ class RunOutputs(Operator):
         self.live: list[Any] = []
         self.tags: dict[int, _TagRecord] = {}
         self.history: list[tuple[int, int, float, float, bool]] = []
-        self.aoa: list[tuple[int, int, float]] = []
+        self.aoa: list[tuple[int, int, float, float]] = []
 
     def on_input(self, port: str, msg: Any, stamp: int):
         if port == "trajectory":
@@ -92,7 +92,7 @@ class RunOutputs(Operator):
             s = stamp_ns(msg)
             record.first_heard = s if record.first_heard is None else min(record.first_heard, s)
             record.last_heard = s if record.last_heard is None else max(record.last_heard, s)
-            self.aoa.append((s, msg.tag_id, msg.angle_rad))
+            self.aoa.append((s, msg.tag_id, msg.angle_rad, msg.std_rad))
         else:
             for tag in msg.tags:
                 self.history.append((stamp_ns(msg), tag.id, tag.position.x, tag.position.y, tag.observable))

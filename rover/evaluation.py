@@ -119,8 +119,8 @@ class RunRecord:
     tag_cov: np.ndarray
     tag_history: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     """(stamp_ns, id, xy (n, 2), observable) of every tag estimate published"""
-    aoa: tuple[np.ndarray, np.ndarray, np.ndarray]
-    """(stamp_ns, tag id, robot-frame angle) of every AoA"""
+    aoa: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    """(stamp_ns, tag id, robot-frame angle, reported std) of every AoA"""
 
 
 @dataclass(frozen=True)
@@ -139,12 +139,16 @@ def poses_at(truth: Poses2D, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.stack([x, y], axis=1), yaw
 
 
-def angle_stats(errors_rad: np.ndarray) -> dict[str, float]:
+def angle_stats(errors_rad: np.ndarray, std_rad: np.ndarray) -> dict[str, float]:
+    """Error figures, and how the reported std tracks the error (a unit Gaussian's |error| / std:
+    median 0.67, 68% within 1, 99.7% within 3)."""
     deg = np.degrees(np.abs(errors_rad))
     if len(deg) == 0:
         return {"count": 0}
+    z = np.abs(errors_rad) / std_rad
     return {"count": int(len(deg)), "median_deg": float(np.median(deg)), "p90_deg": float(np.percentile(deg, 90)),
-            "mean_deg": float(np.mean(deg))}
+            "mean_deg": float(np.mean(deg)), "error_over_std_median": float(np.median(z)),
+            "within_1_std": float(np.mean(z <= 1)), "within_3_std": float(np.mean(z <= 3))}
 
 
 def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
@@ -166,27 +170,39 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
             entry["error_m"] = float(np.linalg.norm(xy - reference))
             entry["aligned_error_m"] = float(np.linalg.norm(final.alignment.apply(xy[None])[0] - reference))
             entry["reported_std_m"] = float(math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
+            entry["sigmas"] = mahalanobis(xy - reference, cov)
         tags[str(int(tag_id))] = entry
     metrics["tags"] = tags
     for kind, flag in (("los", False), ("nlos", True)):
         errors = [t["error_m"] for t in tags.values() if t["nlos"] == flag and "error_m" in t]
         metrics[f"{kind}_tags_mean_m"] = float(np.mean(errors)) if errors else None
-    error, nlos = aoa_errors(run, truth)
+    error, nlos, std = aoa_errors(run, truth)
     if len(error):
-        metrics["aoa"] = {"all": angle_stats(error), "los": angle_stats(error[~nlos]), "nlos": angle_stats(error[nlos])}
+        metrics["aoa"] = {"all": angle_stats(error, std), "los": angle_stats(error[~nlos], std[~nlos]),
+                          "nlos": angle_stats(error[nlos], std[nlos])}
     return metrics
 
 
-def aoa_errors(run: RunRecord, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
-    """Each AoA's error against the direction from the true pose to the true tag, and its NLOS flag."""
-    stamps, ids, angles = run.aoa
+def mahalanobis(error: np.ndarray, cov: np.ndarray) -> float | None:
+    """How many standard deviations of `cov` the error vector is (None for a singular covariance)."""
+    try:
+        return float(math.sqrt(max(error @ np.linalg.solve(cov, error), 0.0)))
+    except np.linalg.LinAlgError:
+        return None
+
+
+def aoa_errors(run: RunRecord, truth: Truth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each AoA's error against the direction from the true pose to the true tag, its NLOS flag and
+    its reported std."""
+    stamps, ids, angles, stds = run.aoa
     known = np.array([int(i) in truth.tags for i in ids], dtype=bool)
     if not known.any():
-        return np.zeros(0), np.zeros(0, bool)
+        return np.zeros(0), np.zeros(0, bool), np.zeros(0)
     position, yaw = poses_at(truth.trajectory, stamps[known])
     where = np.array([truth.tags[int(i)][0] for i in ids[known]])
     true = np.arctan2(where[:, 1] - position[:, 1], where[:, 0] - position[:, 0]) - yaw
-    return np.angle(np.exp(1j * (angles[known] - true))), np.array([truth.tags[int(i)][1] for i in ids[known]])
+    return (np.angle(np.exp(1j * (angles[known] - true))), np.array([truth.tags[int(i)][1] for i in ids[known]]),
+            stds[known])
 
 
 PAPER_ROBOT_MEAN_M = 0.393
@@ -203,11 +219,13 @@ def render(metrics: dict) -> str:
             lines.append(f"{name + ' ' + kind:<30}{cm(e['mean_m']):>10}{cm(e['median_m']):>10}{cm(e['rmse_m']):>10}"
                          f"{cm(e['max_m']):>10}{e['poses']:>7}")
     lines.append(f"  paper (Zhang et al.): robot mean {cm(PAPER_ROBOT_MEAN_M)}")
-    lines.append(f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}  ")
+    lines.append(f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}{'sigmas':>8}")
     for tag_id, t in metrics["tags"].items():
         label = f"{tag_id}{' NLOS' if t['nlos'] else ''}"
         if t["localized"]:
-            lines.append(f"{label:<8}{cm(t['error_m']):>10}{cm(t['aligned_error_m']):>10}{cm(t['reported_std_m']):>14}")
+            sigmas = "-" if t["sigmas"] is None else f"{t['sigmas']:.1f}"
+            lines.append(f"{label:<8}{cm(t['error_m']):>10}{cm(t['aligned_error_m']):>10}{cm(t['reported_std_m']):>14}"
+                         f"{sigmas:>8}")
         else:
             lines.append(f"{label:<8}{'never localized':>34}")
     lines.append(f"LOS tags mean {cm(metrics['los_tags_mean_m'])} (paper {cm(PAPER_LOS_TAGS_MEAN_M)}), "
@@ -216,5 +234,8 @@ def render(metrics: dict) -> str:
         for kind, a in metrics["aoa"].items():
             if a["count"]:
                 lines.append(f"AoA {kind:<4} median {a['median_deg']:.1f} deg, 90th percentile {a['p90_deg']:.1f} deg "
-                             f"({a['count']} bursts)")
+                             f"({a['count']} bursts); |error|/std: median {a['error_over_std_median']:.2f}, "
+                             f"{a['within_1_std']:.0%} <= 1, {a['within_3_std']:.0%} <= 3")
+        lines.append("  a unit Gaussian's |error|/std: median 0.67, 68% <= 1, 99.7% <= 3; sigmas: a tag's error "
+                     "in its reported covariance's standard deviations")
     return "\n".join(lines) + "\n"

@@ -65,7 +65,7 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
     written.append(_save(fig, out / "robot_error.png", plt))
 
     stamps, ids, xy, observable = run.tag_history
-    aoa_stamps, aoa_ids, _ = run.aoa
+    aoa_stamps, aoa_ids, _angles, _stds = run.aoa
     fig, ax = plt.subplots(figsize=(8, 3.5))
     for tag_id, (where, nlos) in sorted(truth.tags.items()):
         mine = (ids == tag_id) & observable
@@ -84,7 +84,7 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
     ax.legend(fontsize=8)
     written.append(_save(fig, out / "tag_error.png", plt))
 
-    error, nlos = aoa_errors(run, truth)
+    error, nlos, _std = aoa_errors(run, truth)
     if len(error):
         fig, ax = plt.subplots(figsize=(5, 4))
         for mask, label in ((~nlos, "LOS"), (nlos, "NLOS")):

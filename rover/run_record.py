@@ -46,7 +46,7 @@ def _read_results(path: Path):
     from rover.messages import deserialize
 
     history: list[tuple[int, int, float, float, bool]] = []
-    aoa: list[tuple[int, int, float]] = []
+    aoa: list[tuple[int, int, float, float]] = []
     if path.exists():
         try:
             with path.open("rb") as f:
@@ -54,7 +54,7 @@ def _read_results(path: Path):
                     msg = deserialize(m.data, schema.name)
                     stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
                     if channel.topic == "/rover/aoa":
-                        aoa.append((stamp, msg.tag_id, msg.angle_rad))
+                        aoa.append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
                     else:
                         history += [(stamp, t.id, t.position.x, t.position.y, t.observable) for t in msg.tags]
         except (OSError, McapError) as exc:
@@ -63,13 +63,13 @@ def _read_results(path: Path):
 
 
 def record(final: Poses2D, live: Poses2D, tags: tuple[np.ndarray, np.ndarray, np.ndarray],
-           history: list[tuple[int, int, float, float, bool]], aoa: list[tuple[int, int, float]]) -> RunRecord:
+           history: list[tuple[int, int, float, float, bool]], aoa: list[tuple[int, int, float, float]]) -> RunRecord:
     h = np.array(history, dtype=object).reshape(-1, 5)
-    a = np.array(aoa, dtype=object).reshape(-1, 3)
+    a = np.array(aoa, dtype=object).reshape(-1, 4)
     return RunRecord(final, live, *tags,
                      tag_history=(h[:, 0].astype(np.int64), h[:, 1].astype(int), h[:, 2:4].astype(float).reshape(-1, 2),
                                   h[:, 4].astype(bool)),
-                     aoa=(a[:, 0].astype(np.int64), a[:, 1].astype(int), a[:, 2].astype(float)))
+                     aoa=(a[:, 0].astype(np.int64), a[:, 1].astype(int), a[:, 2].astype(float), a[:, 3].astype(float)))
 
 
 def load_run(run_dir: str | Path) -> RunRecord:

@@ -81,6 +81,7 @@ def test_sample_recording_convert_run_eval(tmp_path):
             k = int(np.argmin(np.abs(stamps - s)))
             errors.append(abs(math.remainder(aoa.angle_rad - truth[int(stamps[k])], 2 * math.pi)))
     assert math.degrees(float(np.median(errors))) <= 10.0
+    assert metrics["aoa"]["all"]["within_3_std"] >= 0.95 and 0.3 <= metrics["aoa"]["all"]["error_over_std_median"] <= 1.2
     truth_tags = {int(r["id"]): np.array([float(r["x"]), float(r["y"])])
                   for r in csv.DictReader((sample / "truth_tags.csv").open())}
     last = {}

@@ -112,6 +112,7 @@ def test_rover_eval_agrees_with_evo(tmp_path):
         unaligned = evo_stats(reference, run / name)
         assert metrics["robot"][name]["unaligned"]["mean_m"] == pytest.approx(unaligned["mean"], abs=1e-5)
     assert metrics["tags"]["1"]["error_m"] == pytest.approx(0.1, abs=1e-6)
+    assert metrics["tags"]["1"]["sigmas"] == pytest.approx(1.0, abs=1e-5)   # 10 cm off, std 10 cm
     assert metrics["tags"]["2"] == {"nlos": True, "localized": False}
     table = run_rover("eval", str(run), "--truth", str(reference), "--tags", str(tags))
     assert "trajectory_live.tum aligned" in table.stdout and "never localized" in table.stdout
