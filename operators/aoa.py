@@ -37,6 +37,8 @@ QUALITY_AMBIGUOUS = 2
 QUALITY_SWITCHED = 3
 """The MUSIC choice held clearly less power than a direction outside its main lobe: that one is reported."""
 RIVAL_SHARE = 0.9
+MAX_STD_RAD = math.pi
+"""an angle known to be nowhere in particular"""
 AMBIGUOUS_CORRELATION = 0.9999
 GEOMETRY_GRID_DEG = 0.25
 NEAR_AMBIGUOUS_CORRELATION = 0.9
@@ -201,14 +203,14 @@ def check_energy(angle: np.ndarray, delay: np.ndarray, best: int, energy: np.nda
     reflection), the strongest direction is reported instead (on the simulator this removes a
     third of the gross errors, LOS and NLOS)."""
     theta = float(angle[best])
-    energy = np.where(field, energy, -1.0)
+    candidates = np.where(field, energy, -1.0)
 
     def rival(angle: float) -> int:
-        return int(np.argmax(np.where(response.sidelobe[response.degree(angle)] > 0, energy, -1.0)))
+        return int(np.argmax(np.where(response.sidelobe[response.degree(angle)] > 0, candidates, -1.0)))
 
     power = float(energy[response.degree(theta)])
     alt = rival(theta)
-    switched = energy[alt] > p.energy_ratio * power
+    switched = candidates[alt] > p.energy_ratio * power
     if switched:
         near_rival = response.sidelobe[response.degree(np.radians(alt)), response.degree(angle)] == 0
         switched = not np.any(near_rival & (delay >= delay[best] + p.resolved_ns * 1e-9))
@@ -218,7 +220,7 @@ def check_energy(angle: np.ndarray, delay: np.ndarray, best: int, energy: np.nda
         power = float(energy[alt])
         alt = rival(theta)
     gap = abs(float(np.angle(np.exp(1j * (np.radians(alt) - theta)))))
-    return Direction(theta, max(power, 0.0), max(float(energy[alt]), 0.0), gap, bool(switched))
+    return Direction(theta, max(power, 0.0), max(float(candidates[alt]), 0.0), gap, bool(switched))
 
 
 def burst_std(d: Direction, p: AoaParams) -> float:
@@ -229,12 +231,13 @@ def burst_std(d: Direction, p: AoaParams) -> float:
     sqrt((1 - power) / power); and the rival direction, counted with its angular distance and a
     chance that grows steeply with its power relative to the reported one's (the mixture's
     variance). Constants fitted on simulated bursts (paper scenario) and checked on the
-    independent recording; see bench/bench_aoa.py."""
+    independent recording; see bench/bench_aoa.py. At most MAX_STD_RAD."""
     unexplained = (1 - min(d.power, 1.0)) / max(d.power, 1e-6)
     ratio = d.rival_power / max(d.power, 1e-6)
-    chance = 1.0 / (1.0 + ratio ** -p.doubt_sharpness) if ratio > 0 else 0.0
-    return math.sqrt(math.radians(p.std_floor_deg) ** 2 + math.radians(p.multipath_std_deg) ** 2 * unexplained
-                     + chance * d.rival_gap_rad ** 2)
+    chance = 0.5 * (1 + math.tanh(0.5 * p.doubt_sharpness * math.log(ratio))) if ratio > 0 else 0.0
+    variance = (math.radians(p.std_floor_deg) ** 2 + math.radians(p.multipath_std_deg) ** 2 * unexplained
+                + chance * d.rival_gap_rad ** 2)
+    return min(math.sqrt(variance), MAX_STD_RAD)
 
 
 class Aoa(Operator):
@@ -354,7 +357,7 @@ class Aoa(Operator):
             return std, quality
         worst = float(response.worst(theta))
         if worst > NEAR_AMBIGUOUS_CORRELATION:
-            std *= 1 + 10 * (worst - NEAR_AMBIGUOUS_CORRELATION)
+            std = min(std * (1 + 10 * (worst - NEAR_AMBIGUOUS_CORRELATION)), MAX_STD_RAD)
             quality = quality or QUALITY_AMBIGUOUS
         return std, quality
 

@@ -12,8 +12,8 @@ from conftest import read_bag, reference_data
 from rover.drivers.intel5300 import decode_bfee
 from rover.errors import BadInput
 from rover.messages import deserialize, header, make, stamp_ns
-from rover.operators.aoa import (QUALITY_AMBIGUOUS, QUALITY_GOOD, Aoa, AoaParams, ArrayResponse, burst_std,
-                                 check_energy, check_geometry)
+from rover.operators.aoa import (QUALITY_AMBIGUOUS, QUALITY_GOOD, Aoa, AoaParams, ArrayResponse, Direction,
+                                 burst_std, check_energy, check_geometry)
 from rover.rig import load_rig, rig_from_text
 from rover.run_record import load_truth
 from rover.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, subcarrier_freqs_hz
@@ -197,6 +197,16 @@ def test_a_strong_mirror_is_reported_unless_resolved_as_a_later_path():
     later = check_energy(angles, np.array([10e-9, 60e-9]), 0, energy, response, field, AoaParams())
     assert not later.switched and later.angle_rad == angles[0]
     assert burst_std(later, AoaParams()) > math.radians(90)
+
+
+def test_the_std_grows_with_unexplained_power_and_a_rival_and_stays_finite():
+    p = AoaParams()
+    clean = burst_std(Direction(0.0, 0.99, 0.0, 0.0, False), p)
+    assert math.radians(p.std_floor_deg) <= clean < math.radians(5)
+    assert burst_std(Direction(0.0, 0.7, 0.0, 0.0, False), p) > 2 * clean
+    rivals = [burst_std(Direction(0.0, 0.9, 0.9 * r, math.pi, False), p) for r in (1e-12, 0.8, 0.95, 1.0, 1e12)]
+    assert rivals == sorted(rivals) and rivals[0] == pytest.approx(burst_std(Direction(0.0, 0.9, 0.0, 0.0, False), p))
+    assert rivals[-1] == math.pi and burst_std(Direction(0.0, 0.0, 0.0, 0.0, False), p) == math.pi
 
 
 def test_near_ambiguous_directions_show_in_the_std():
