@@ -31,7 +31,7 @@ log = logging.getLogger("rover.aoa")
 
 QUALITY_GOOD = 0
 QUALITY_RIVAL = 1
-"""A direction outside the reported one's main lobe explains nearly as much power (RIVAL_SHARE of it)."""
+"""A direction outside the reported one's main lobe explains nearly as much power (more than RIVAL_SHARE of it)."""
 QUALITY_AMBIGUOUS = 2
 """The estimate lies where the array can hardly tell it from another direction."""
 QUALITY_SWITCHED = 3
@@ -57,7 +57,7 @@ class AoaParams:
     support: float = 0.01
     """pseudo-spectrum height, relative to the highest peak, a peak needs to be a direct-path candidate"""
     delay_margin_ns: float = 5.0
-    """a weaker candidate replaces a stronger one only when it arrives at least this much earlier"""
+    """a weaker candidate replaces a stronger one only when it arrives more than this much earlier"""
     energy_ratio: float = 1.2
     """report the strongest direction instead when it holds this many times the chosen one's power"""
     resolved_ns: float = 25.0
@@ -125,8 +125,9 @@ def check_geometry(antennas_m: np.ndarray, max_freq_hz: float) -> str | None:
 
 
 class ArrayResponse:
-    """The array at one frequency, per whole degree: its steering vectors, and how alike it sees two
-    directions outside each other's main lobe (0 inside it; the main lobe ends at the first minimum)."""
+    """The array at one frequency, per whole degree: its steering vectors, and how alike it sees a
+    direction j outside direction i's main lobe, sidelobe[i, j] (0 inside it; the main lobe ends
+    at the first minimum on each side)."""
 
     def __init__(self, antennas_m: np.ndarray, freq_hz: float):
         self.steering = steering(antennas_m, freq_hz, np.radians(np.arange(360.0)))      # (360, M)
@@ -191,36 +192,43 @@ class Direction:
     switched: bool
 
 
-def check_energy(angle: np.ndarray, delay: np.ndarray, best: int, energy: np.ndarray, response: ArrayResponse,
-                 field: np.ndarray, p: AoaParams) -> Direction:
-    """Compare the MUSIC choice (peak `best` of `angle`, `delay`) with the power each direction
-    explains (Bartlett, whole degrees).
+def check_energy(angle: np.ndarray, delay: np.ndarray, height: np.ndarray, best: int, energy: np.ndarray,
+                 response: ArrayResponse, field: np.ndarray, p: AoaParams) -> Direction:
+    """Compare the MUSIC choice (peak `best` of the peaks `angle`, `delay`, `height`) with the power
+    each direction explains (Bartlett, whole degrees; only directions in `field` compete).
 
     The triangle's back lobe is strong (correlation 0.92 at lambda/2): a reflection or noise
     turns the true direction's mirror into a MUSIC peak with a small delay. When a direction
     outside the chosen one's main lobe explains `energy_ratio` times more power, and MUSIC does
-    not resolve it as a path arriving clearly later (by `resolved_ns`: a real, stronger
-    reflection), the strongest direction is reported instead (on the simulator this removes a
-    third of the gross errors, LOS and NLOS)."""
+    not resolve a path there (a peak of `support`) arriving clearly later (by `resolved_ns`: a
+    real, stronger reflection), the strongest such direction is reported instead (on the
+    simulator this removes a third of the gross errors, LOS and NLOS). An array whose main lobe
+    covers every direction in the field has no rival."""
     theta = float(angle[best])
-    candidates = np.where(field, energy, -1.0)
+    peaks = height >= p.support * height.max()
 
-    def rival(angle: float) -> int:
-        return int(np.argmax(np.where(response.sidelobe[response.degree(angle)] > 0, candidates, -1.0)))
+    def rival(angle: float) -> int | None:
+        rivals = np.where(field & (response.sidelobe[response.degree(angle)] > 0), energy, -np.inf)
+        alt = int(np.argmax(rivals))
+        return alt if np.isfinite(rivals[alt]) else None
 
     power = float(energy[response.degree(theta)])
     alt = rival(theta)
-    switched = candidates[alt] > p.energy_ratio * power
+    switched = alt is not None and energy[alt] > p.energy_ratio * power
     if switched:
         near_rival = response.sidelobe[response.degree(np.radians(alt)), response.degree(angle)] == 0
-        switched = not np.any(near_rival & (delay >= delay[best] + p.resolved_ns * 1e-9))
+        switched = not np.any(near_rival & peaks & (delay >= delay[best] + p.resolved_ns * 1e-9))
     if switched:
-        offset = float(parabola_offset(energy[alt - 1], energy[alt], energy[(alt + 1) % 360]))
+        left, right = energy[alt - 1], energy[(alt + 1) % 360]
+        top = energy[alt] >= max(left, right)
+        offset = float(parabola_offset(left, energy[alt], right)) if top else 0.0
         theta = float(np.angle(np.exp(1j * np.radians(alt + offset))))
         power = float(energy[alt])
         alt = rival(theta)
+    if alt is None:
+        return Direction(theta, max(power, 0.0), 0.0, 0.0, bool(switched))
     gap = abs(float(np.angle(np.exp(1j * (np.radians(alt) - theta)))))
-    return Direction(theta, max(power, 0.0), max(float(candidates[alt]), 0.0), gap, bool(switched))
+    return Direction(theta, max(power, 0.0), max(float(energy[alt]), 0.0), gap, bool(switched))
 
 
 def burst_std(d: Direction, p: AoaParams) -> float:
@@ -237,7 +245,7 @@ def burst_std(d: Direction, p: AoaParams) -> float:
     chance = 0.5 * (1 + math.tanh(0.5 * p.doubt_sharpness * math.log(ratio))) if ratio > 0 else 0.0
     variance = (math.radians(p.std_floor_deg) ** 2 + math.radians(p.multipath_std_deg) ** 2 * unexplained
                 + chance * d.rival_gap_rad ** 2)
-    return min(math.sqrt(variance), MAX_STD_RAD)
+    return min(math.sqrt(variance), MAX_STD_RAD) if math.isfinite(variance) else MAX_STD_RAD
 
 
 class Aoa(Operator):
@@ -278,6 +286,8 @@ class Aoa(Operator):
         antennas = self.rig.antenna_positions_m
         top = max((channel_freq_hz(t.channel) for t in self.rig.tags), default=5.9e9)
         warning = check_geometry(antennas, top)
+        self.estimators, self._responses = {}, {}
+        self.half_plane_normal, self.field = None, np.ones(360, dtype=bool)
         if warning:
             log.warning("%s", warning)
             self.half_plane_normal = field_normal(array_axis(antennas))
@@ -336,7 +346,8 @@ class Aoa(Operator):
             return
         response = self._response(music.center_hz)
         energy = response.energy(np.einsum("pfm,pfn->mn", clean, clean.conj()))
-        direction = check_energy(angle, peaks.delay[0], best, energy, response, self.field, self.params)
+        direction = check_energy(angle, peaks.delay[0], peaks.height[0], best, energy, response, self.field,
+                                 self.params)
         theta, tau, used = direction.angle_rad, float(peaks.delay[0, best]), len(csi)
         if direction.switched:
             distance = np.where(peaks.height[0] > 0, np.abs(np.angle(np.exp(1j * (angle - theta)))), np.inf)

@@ -192,21 +192,40 @@ def test_a_strong_mirror_is_reported_unless_resolved_as_a_later_path():
     energy = response.energy(np.outer(a, a.conj()) + 0.01 * np.eye(3))
     field = np.ones(360, dtype=bool)
     angles = np.radians([210.0, 30.0])
-    ghost = check_energy(angles, np.array([10e-9, 12e-9]), 0, energy, response, field, AoaParams())
+    heights = np.array([1.0, 0.5])
+    ghost = check_energy(angles, np.array([10e-9, 12e-9]), heights, 0, energy, response, field, AoaParams())
     assert ghost.switched and angle_error_deg(ghost.angle_rad, math.radians(30)) < 1.0
-    later = check_energy(angles, np.array([10e-9, 60e-9]), 0, energy, response, field, AoaParams())
+    later = check_energy(angles, np.array([10e-9, 60e-9]), heights, 0, energy, response, field, AoaParams())
     assert not later.switched and later.angle_rad == angles[0]
     assert burst_std(later, AoaParams()) > math.radians(90)
+    spurious = check_energy(angles, np.array([10e-9, 60e-9]), np.array([1.0, 0.001]), 0, energy, response, field,
+                            AoaParams())
+    assert spurious.switched, "a peak below `support` is no resolved path"
+
+
+def test_an_array_without_sidelobes_has_no_rival():
+    """At 2.4 GHz the lambda/2-at-5.8-GHz triangle is small: its main lobe covers some directions'
+    whole circle. No rival there, no switch, and the std comes from the power alone."""
+    response = ArrayResponse(TRIANGLE, channel_freq_hz(6))
+    lone = np.flatnonzero(response.sidelobe.max(axis=1) == 0)
+    assert len(lone) > 0
+    a = response.steering[(lone[0] + 20) % 360]
+    energy = response.energy(np.outer(a, a.conj()) + 0.01 * np.eye(3))
+    pick = math.radians(lone[0])
+    d = check_energy(np.array([pick]), np.array([1e-8]), np.array([1.0]), 0, energy, response,
+                     np.ones(360, dtype=bool), AoaParams())
+    assert not d.switched and d.angle_rad == pick and d.rival_power == 0.0
 
 
 def test_the_std_grows_with_unexplained_power_and_a_rival_and_stays_finite():
     p = AoaParams()
     clean = burst_std(Direction(0.0, 0.99, 0.0, 0.0, False), p)
-    assert math.radians(p.std_floor_deg) <= clean < math.radians(5)
+    assert clean < math.radians(5)
     assert burst_std(Direction(0.0, 0.7, 0.0, 0.0, False), p) > 2 * clean
     rivals = [burst_std(Direction(0.0, 0.9, 0.9 * r, math.pi, False), p) for r in (1e-12, 0.8, 0.95, 1.0, 1e12)]
     assert rivals == sorted(rivals) and rivals[0] == pytest.approx(burst_std(Direction(0.0, 0.9, 0.0, 0.0, False), p))
     assert rivals[-1] == math.pi and burst_std(Direction(0.0, 0.0, 0.0, 0.0, False), p) == math.pi
+    assert burst_std(Direction(0.0, math.nan, 0.0, 0.0, False), p) == math.pi
 
 
 def test_near_ambiguous_directions_show_in_the_std():
