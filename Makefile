@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $@
 
 demo: $(STAMP)
-	$(BIN)/python -m rover.demo
+	$(BIN)/python -m rover.cli.demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

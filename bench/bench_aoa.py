@@ -21,11 +21,11 @@ from mcap.reader import make_reader
 from rover.datasets.convert import convert
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
-from rover.drivers.intel5300 import decode_bfee
+from rover.formats.intel5300 import decode_bfee
 from rover.messages import deserialize, make
-from rover.operators.aoa import Aoa
-from rover.rig import rig_from_text
-from rover.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
+from rover.operators.aoa.operator import Aoa
+from rover.formats.rig import rig_from_text
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
 
 ROOT = Path(__file__).resolve().parents[1]
 

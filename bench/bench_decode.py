@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rover.drivers.intel5300 import read_dat
+from rover.formats.intel5300 import read_dat
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_RECORDS_S = 340_000

@@ -13,7 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from rover.datasets.bagfile import BagWriter
+from rover.formats.bag import BagWriter
 from rover.messages import header, make
 
 T0_NS = 1_700_000_000_000_000_000

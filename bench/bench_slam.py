@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-from rover.evaluation import Poses2D, poses_of_messages, trajectory_errors, yaw_from_quaternion
+from rover.evaluation.metrics import Poses2D, poses_of_messages, trajectory_errors, yaw_from_quaternion
 from rover.messages import deserialize, stamp_ns
-from rover.run_record import load_truth
-from rover.operators.slam import Slam, SlamParams
+from rover.formats.run_dir import load_truth
+from rover.operators.slam.operator import Slam, SlamParams
 
 PAPER = {"robot_mean_m": 0.393, "los_tags_mean_m": 0.746, "nlos_tag_m": 1.459}
 PORTS = {"/rover/aoa": "aoa", "/rover/preintegration": "odometry", "/odom": "wheel"}

@@ -24,11 +24,11 @@ import yaml
 from rosbags.highlevel import AnyReader, AnyReaderError
 
 import rover
-from rover.datasets.bagfile import BagWriter
-from rover.datasets.truth import read_tags_csv, read_tum
+from rover.formats.bag import BagWriter
+from rover.formats.truth import read_tags_csv, read_tum
 from rover.errors import BadInput, SpecError
 from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
-from rover.rig import Rig, load_rig
+from rover.formats.rig import Rig, load_rig
 
 log = logging.getLogger("rover.convert")
 

@@ -126,7 +126,7 @@ def _tags_by_channel(setup: str | None) -> dict[int, int]:
     if not setup:
         return {}
     from rover.errors import SpecError
-    from rover.rig import rig_from_text
+    from rover.formats.rig import rig_from_text
 
     try:
         return {t.channel: t.id for t in rig_from_text(setup, SETUP_METADATA).tags}

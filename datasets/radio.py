@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rover.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCARRIERS_20MHZ, channel_freq_hz
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCARRIERS_20MHZ, channel_freq_hz
 
 
 @dataclass(frozen=True)

@@ -9,10 +9,10 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from rover import params as P
+from rover.pipeline import params as P
 from rover.errors import BadInput, Diagnostic, SpecError
-from rover.spec import did_you_mean
-from rover.yamlpos import Located, load, parse_scalar
+from rover.pipeline.spec import did_you_mean
+from rover.pipeline.yamlpos import Located, load, parse_scalar
 
 
 @dataclass(frozen=True)

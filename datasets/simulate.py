@@ -13,15 +13,15 @@ import numpy as np
 import yaml
 
 import rover
-from rover.datasets.bagfile import BagWriter
+from rover.formats.bag import BagWriter
 from rover.datasets.imu_model import imu_samples, odometry_samples
 from rover.datasets.motion import Motion
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import Scenario
-from rover.drivers.intel5300 import RecordHeader, encode_record
+from rover.formats.intel5300 import RecordHeader, encode_record
 from rover.errors import BadInput
 from rover.messages import header, make
-from rover.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
 
 T0_NS = 1_700_000_000_000_000_000
 """Simulated clock origin (2023-11-14), so stamps look like a real recording's."""

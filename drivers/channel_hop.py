@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from rover.errors import BadInput, SpecError
 from rover.messages import header, make
 from rover.operator import Emit, Out, Source, Watermark
-from rover.rig import load_rig
+from rover.formats.rig import load_rig
 
 log = logging.getLogger("rover.channel_hop")
 DEFAULT_COMMAND = "iw dev {interface} set channel {channel} HT20"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rover.drivers.intel5300 import StreamDecoder
+from rover.formats.intel5300 import StreamDecoder
 from rover.errors import BadInput
 from rover.messages import header, make
 from rover.operator import Emit, Out, Source, Watermark

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rover.datasets.bagfile import BagWriter
+from rover.formats.bag import BagWriter
 from rover.messages import ANY
 from rover.operator import In, Operator
 

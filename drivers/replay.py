@@ -21,7 +21,7 @@ from mcap.reader import make_reader
 from rover.errors import BadInput, SpecError
 from rover.messages import Raw, header, message_class
 from rover.operator import Emit, Out, Source, Watermark
-from rover.rig import load_rig
+from rover.formats.rig import load_rig
 
 log = logging.getLogger("rover.dataset_replay")
 

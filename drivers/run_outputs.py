@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from rover.evaluation import evaluate, poses_of_messages
-from rover.figures import write_figures
+from rover.evaluation.metrics import evaluate, poses_of_messages
+from rover.evaluation.figures import write_figures
 from rover.messages import stamp_ns
 from rover.operator import In, Operator
-from rover.run_record import RUN_FILE, load_truth, record
+from rover.formats.run_dir import RUN_FILE, load_truth, record
 
 log = logging.getLogger("rover.outputs")
 

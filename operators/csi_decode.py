@@ -1,6 +1,6 @@
 """`csi_decode`: Intel 5300 CSI Tool records of labelled frames into complex CSI per tag.
 
-Bit extraction, the antenna permutation and the scaling are the decoder's (rover.drivers.intel5300),
+Bit extraction, the antenna permutation and the scaling are the decoder's (rover.formats.intel5300),
 bit-exact with the CSI Tool's own MATLAB code. Records that are not beamforming reports or whose
 length disagrees with their antenna counts are counted and dropped.
 """
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from rover.drivers.intel5300 import decode_bfee
+from rover.formats.intel5300 import decode_bfee
 from rover.messages import make
 from rover.operator import Emit, In, Operator, Out
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rover.datasets.bagfile import BagWriter
+from rover.formats.bag import BagWriter
 from rover.messages import header, make
 
 TESTS = Path(__file__).resolve().parent

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rover.sliding_window import Edge, SlidingWindow, WindowSettings
+from rover.operators.slam.sliding_window import Edge, SlidingWindow, WindowSettings
 
 EXACT_COVARIANCE = np.diag([1e-8, 1e-8, 1e-10, 1e-10])
 """[dv, dp] covariance of an exact odometry edge (velocity first, as the Preintegration message)"""

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from conftest import read_bag, reference_data
-from rover.drivers.intel5300 import decode_bfee
+from rover.formats.intel5300 import decode_bfee
 from rover.errors import BadInput
 from rover.messages import deserialize, header, make, stamp_ns
-from rover.operators.aoa import (QUALITY_AMBIGUOUS, QUALITY_GOOD, Aoa, AoaParams, ArrayResponse, Direction,
+from rover.operators.aoa.operator import (QUALITY_AMBIGUOUS, QUALITY_GOOD, Aoa, AoaParams, ArrayResponse, Direction,
                                  burst_std, check_energy, check_geometry)
-from rover.rig import load_rig, rig_from_text
-from rover.run_record import load_truth
-from rover.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, subcarrier_freqs_hz
+from rover.formats.rig import load_rig, rig_from_text
+from rover.formats.run_dir import load_truth
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, subcarrier_freqs_hz
 
 D = 0.0258
 TRIANGLE = np.array([[0.0, 0.0], [D, 0.0], [D / 2, -D * math.sqrt(3) / 2]])

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rover.channel_plan import best_excitation, conflicts, emissions, max_tags, propose
-from rover.wifi import channel_freq_hz
+from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, emissions, max_tags, propose
+from rover.formats.wifi import channel_freq_hz
 
 PAPER = {1: 149, 2: 153, 3: 157, 4: 161}
 

@@ -10,7 +10,7 @@ import pytest
 from conftest import T0_NS
 from rover.errors import BadInput
 from rover.messages import header, make
-from rover.operators.channel_sweep import ChannelSweep, SweepParams
+from rover.operators.channel_sweep.operator import ChannelSweep, SweepParams
 
 SETUP = """\
 receiver: {antenna_positions_m: [[0, 0], [0.0258, 0], [0.0129, -0.0223]]}

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 
 from conftest import T0_NS, reference_data
-from rover.drivers.intel5300 import read_dat, split_records
+from rover.formats.intel5300 import read_dat, split_records
 from rover.messages import deserialize, header, make, serialize
 from rover.operators.csi_decode import CsiDecode, csi_array
 

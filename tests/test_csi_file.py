@@ -7,7 +7,7 @@ import time
 
 from conftest import read_bag, reference_data, run_rover
 from rover.drivers.csi_file import CsiFile, CsiFileParams
-from rover.drivers.intel5300 import split_records
+from rover.formats.intel5300 import split_records
 from rover.messages import deserialize
 from rover.operator import Emit
 

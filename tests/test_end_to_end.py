@@ -14,7 +14,7 @@ import numpy as np
 from mcap.reader import make_reader
 
 from conftest import read_bag, reference_data, run_rover
-from rover.datasets.bagfile import BagWriter
+from rover.formats.bag import BagWriter
 from rover.messages import deserialize
 
 
@@ -24,7 +24,7 @@ def test_the_demo_beats_the_papers_figures(tmp_path, simulated):
     cache.mkdir()
     os.link(dataset, cache / "paper-seed1.mcap")
     out = tmp_path / "demo"
-    proc = subprocess.run([sys.executable, "-m", "rover.demo", "--output", str(out)], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "rover.cli.demo", "--output", str(out)], capture_output=True, text=True,
                           env=dict(os.environ, ROVER_CACHE=str(cache)), timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert "paper (Zhang et al.)" in proc.stdout and "trajectory.tum" in proc.stdout

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import run_rover
-from rover.evaluation import Poses2D, fit_rigid, trajectory_errors
+from rover.evaluation.metrics import Poses2D, fit_rigid, trajectory_errors
 
 T0 = 1_700_000_000.0
 

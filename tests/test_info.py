@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from conftest import T0_NS, reference_data, run_rover, write_imu_dataset
-from rover.datasets.bagfile import BagWriter
+from rover.formats.bag import BagWriter
 from rover.messages import header, make
 
 SETUP = "receiver: {antenna_positions_m: [[0, 0], [0.0258, 0]]}\nexcitation: {channel: 165}\ntags: [{id: 7, channel: 149}]\n"

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import reference_data
-from rover.drivers.intel5300 import (CsiFormatError, CsiRecords, RecordHeader, StreamDecoder, concat, decode_bfee,
+from rover.formats.intel5300 import (CsiFormatError, CsiRecords, RecordHeader, StreamDecoder, concat, decode_bfee,
                                      decode_log, encode_record, read_dat, split_records)
 
 FIELDS = ("timestamp_low", "bfee_count", "nrx", "ntx", "rssi", "noise", "agc", "antenna_sel", "perm", "rate", "csi",

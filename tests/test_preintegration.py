@@ -12,7 +12,7 @@ from conftest import T0_NS, read_bag
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
 from rover.messages import deserialize, header, make
-from rover.operators.preintegration import Preintegration, rpy_matrix
+from rover.operators.preintegration.operator import Preintegration, rpy_matrix
 
 EPOCH_NS = 400_000_000
 

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from conftest import T0_NS, read_bag, write_imu_dataset
-from rover.datasets.bagfile import BagWriter
+from rover.formats.bag import BagWriter
 from rover.drivers.replay import DatasetReplay, ReplayParams
 from rover.errors import BadInput
 from rover.messages import Raw, header, make

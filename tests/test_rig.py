@@ -7,7 +7,7 @@ import pytest
 
 from conftest import reference_data, run_rover
 from rover.errors import SpecError
-from rover.rig import load_rig, rig_from_text
+from rover.formats.rig import load_rig, rig_from_text
 
 SETUP = """\
 receiver:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import random
 
-from rover.scheduler import EventTimeMerger
+from rover.runtime.scheduler import EventTimeMerger
 
 
 def drain(merger: EventTimeMerger) -> list[tuple[str, int, object]]:

@@ -12,10 +12,10 @@ from conftest import read_bag, run_rover
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import antenna_positions, simulate
-from rover.drivers.intel5300 import RecordHeader, decode_bfee, encode_record
+from rover.formats.intel5300 import RecordHeader, decode_bfee, encode_record
 from rover.errors import BadInput, SpecError
 from rover.messages import deserialize
-from rover.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
 
 SHORT = {"trajectory.laps": "1"}
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from rover.messages import header, make
-from rover.operators.slam import Slam, SlamParams
+from rover.operators.slam.operator import Slam, SlamParams
 from slam_scenes import EXACT_COVARIANCE, angles, edge, scene
 
 START_NS = 1_000_000_000

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from rover.sliding_window import WindowSettings
+from rover.operators.slam.sliding_window import WindowSettings
 from slam_scenes import angles, estimate, scene, tag_errors
 
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from rover.spec import parse
-from rover.yamlpos import load, parse_scalar
+from rover.pipeline.spec import parse
+from rover.pipeline.yamlpos import load, parse_scalar
 
 TEXT = """\
 name: demo

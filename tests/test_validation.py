@@ -9,7 +9,8 @@ import pytest
 
 from conftest import ROOT, run_rover
 from rover.errors import SpecError
-from rover.validation import load_and_check
+from rover.cli.registry import BUILTINS
+from rover.pipeline.validation import load_and_check
 
 GOOD = """\
 version: 1
@@ -26,7 +27,7 @@ def problems(tmp_path: Path, text: str, **overrides) -> list[tuple[int, int, str
     path = tmp_path / "pipeline.yaml"
     path.write_text(textwrap.dedent(text))
     with pytest.raises(SpecError) as info:
-        load_and_check(path, overrides)
+        load_and_check(path, BUILTINS, overrides)
     assert all(d.file == str(path) for d in info.value.diagnostics)
     return [(d.line, d.col, d.message) for d in info.value.diagnostics]
 
@@ -48,7 +49,7 @@ def has(found, where, *words):
 def test_good_file_passes(tmp_path):
     path = tmp_path / "pipeline.yaml"
     path.write_text(GOOD)
-    pipeline = load_and_check(path)
+    pipeline = load_and_check(path, BUILTINS)
     assert list(pipeline.nodes) == ["replay", "heading", "record"]
     assert pipeline.nodes["heading"].params.gain == 2.0
     assert pipeline.nodes["replay"].params.path == "data.mcap"

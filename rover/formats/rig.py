@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 
 from rover.errors import Diagnostic, SpecError
-from rover.spec import did_you_mean, read_document
-from rover.wifi import INTEL5300_CHANNELS_5GHZ, channel_freq_hz, freq_channel
-from rover.yamlpos import Located, load
+from rover.pipeline.spec import did_you_mean, read_document
+from rover.formats.wifi import INTEL5300_CHANNELS_5GHZ, channel_freq_hz, freq_channel
+from rover.pipeline.yamlpos import Located, load
 
 TOP_KEYS = ("receiver", "excitation", "tags", "topics", "imu", "sweep")
 RECEIVER_KEYS = ("antenna_positions_m", "phase_offsets_rad", "interface")

@@ -17,7 +17,7 @@ from rich.console import Console
 from rich.table import Table
 
 from rover import cli
-from rover.evaluation import PAPER_LOS_TAGS_MEAN_M, PAPER_ROBOT_MEAN_M
+from rover.evaluation.metrics import PAPER_LOS_TAGS_MEAN_M, PAPER_ROBOT_MEAN_M
 
 PAPER_NLOS_TAG_M = 1.459
 
@@ -62,7 +62,7 @@ def report(metrics: dict, console: Console) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m rover.demo", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m rover.cli.demo", description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--output", type=Path, default=Path("rover-out") / "demo")
     args = ap.parse_args(argv)

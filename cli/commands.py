@@ -11,8 +11,9 @@ from pathlib import Path
 from typing import Any
 
 from rover import __version__
+from rover.cli.registry import BUILTINS
 from rover.errors import BadInput, RoverError, SpecError
-from rover.yamlpos import parse_scalar
+from rover.pipeline.yamlpos import parse_scalar
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
@@ -41,10 +42,10 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
     """Summary line and warnings of one pipeline or setup file; raises on problems."""
-    from rover.channel_plan import best_excitation, conflicts, max_tags
-    from rover.rig import parse_rig
-    from rover.spec import read_document
-    from rover.validation import check, parse
+    from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, max_tags
+    from rover.formats.rig import parse_rig
+    from rover.pipeline.spec import read_document
+    from rover.pipeline.validation import check, parse
 
     doc = read_document(file)
     if isinstance(doc.data, dict) and "operators" not in doc.data and ({"receiver", "tags", "excitation"} & set(doc.data)):
@@ -59,7 +60,7 @@ def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
         return (f"{file}: ok: rig with {len(rig.antenna_positions_m)} antennas, excitation channel "
                 f"{rig.excitation_channel} (at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"), warnings
     spec, problems = parse(doc, overrides)
-    return check(spec, problems).summary(), []
+    return check(spec, BUILTINS, problems).summary(), []
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -83,18 +84,18 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from rover.runtime import run
-    from rover.validation import load_and_check
+    from rover.runtime.runner import run
+    from rover.pipeline.validation import load_and_check
 
-    pipeline = load_and_check(args.pipeline or default_pipeline(), _overrides(args))
+    pipeline = load_and_check(args.pipeline or default_pipeline(), BUILTINS, _overrides(args))
     return run(pipeline, args.host)
 
 
 def cmd_graph(args: argparse.Namespace) -> int:
-    from rover import graph
-    from rover.validation import load_and_check
+    from rover.pipeline import graph
+    from rover.pipeline.validation import load_and_check
 
-    pipeline = load_and_check(args.pipeline or default_pipeline(), _overrides(args))
+    pipeline = load_and_check(args.pipeline or default_pipeline(), BUILTINS, _overrides(args))
     sys.stdout.write(graph.dot(pipeline) if args.format == "dot" else graph.mermaid(pipeline))
     return 0
 
@@ -156,8 +157,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     import json
 
-    from rover.evaluation import evaluate, render
-    from rover.run_record import load_run, load_truth, run_dataset
+    from rover.evaluation.metrics import evaluate, render
+    from rover.formats.run_dir import load_run, load_truth, run_dataset
 
     run = load_run(args.run)
     source = args.truth or run_dataset(args.run)

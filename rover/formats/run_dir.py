@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rover.datasets.truth import Trajectory, read_dataset_truth, read_tags_csv, read_tum
+from rover.formats.truth import Trajectory, read_dataset_truth, read_tags_csv, read_tum
 from rover.errors import BadInput
-from rover.evaluation import Poses2D, RunRecord, Truth, yaw_from_quaternion
+from rover.evaluation.metrics import Poses2D, RunRecord, Truth, yaw_from_quaternion
 
 RUN_FILE = "run.json"
 """names the dataset a run read, so `rover eval` finds its truth"""

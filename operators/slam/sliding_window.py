@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg
 
-from rover.window_program import Shape, SolverFailed, UpdateData, WindowProgram, edge_matrix, prior_indices
+from rover.operators.slam.window_program import Shape, SolverFailed, UpdateData, WindowProgram, edge_matrix, prior_indices
 
 
 @dataclass(frozen=True)

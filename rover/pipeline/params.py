@@ -109,7 +109,7 @@ Report = Callable[[tuple, str, bool], None]
 def bind(cls: type, values: dict[str, Any], wording: Wording, report: Report) -> Any | None:
     """Coerce a mapping into the dataclass `cls`, reporting every unknown key, ill-typed value and
     missing field; None when there was any problem."""
-    from rover.spec import did_you_mean
+    from rover.pipeline.spec import did_you_mean
 
     known = fields(cls)
     hints = resolved_types(cls)

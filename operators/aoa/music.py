@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rover.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCARRIERS_20MHZ, channel_freq_hz
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCARRIERS_20MHZ, channel_freq_hz
 
 RUN_STEP = 2
 """Subcarrier index step inside an evenly spaced run (625 kHz at 20 MHz)."""

@@ -23,8 +23,8 @@ import zenoh
 from rover.errors import BadInput, OperatorFailed, PeerLost
 from rover.messages import ANY, Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, Source, Watermark
-from rover.scheduler import INF, EventTimeMerger
-from rover.validation import Node, Pipeline
+from rover.runtime.scheduler import INF, EventTimeMerger
+from rover.pipeline.validation import Node, Pipeline
 from rover.transport import codec, keys
 from rover.transport.session import SessionSpec, open_session
 

@@ -1,7 +1,7 @@
 """The pipeline file: its shape, `${var}` substitution, and the dataclasses the runtime reads.
 
 Structural problems (unknown keys, wrong value kinds, bad names, undefined variables) are
-collected here; what needs the operator classes is checked in `rover.validation`.
+collected here; what needs the operator classes is checked in `rover.pipeline.validation`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from rover.errors import BadInput, Diagnostic
-from rover.yamlpos import Located, load
+from rover.pipeline.yamlpos import Located, load
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 VAR_RE = re.compile(r"\$\{([^}]*)\}")

@@ -14,12 +14,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from rover.channel_plan import conflicts, max_tags, propose
+from rover.operators.channel_sweep.channel_plan import conflicts, max_tags, propose
 from rover.errors import BadInput, SpecError
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.rig import Rig, rig_from_text
-from rover.wifi import INTEL5300_CHANNELS_5GHZ
+from rover.formats.rig import Rig, rig_from_text
+from rover.formats.wifi import INTEL5300_CHANNELS_5GHZ
 
 log = logging.getLogger("rover.channel_sweep")
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from rover.validation import Pipeline
+from rover.pipeline.validation import Pipeline
 
 
 def _short(typename: str) -> str:

@@ -1,6 +1,6 @@
 """`aoa`: the direct-path angle of arrival of each tag, from the CSI of one burst (one dwell of the sweep).
 
-Each packet is cleaned and smoothed (rover.music); the burst's covariances are averaged (the
+Each packet is cleaned and smoothed (rover.operators.aoa.music); the burst's covariances are averaged (the
 packets see the same paths, their random common phases cancel in the covariance), and joint
 angle-delay MUSIC on that average gives the paths. The strongest peak is the direct path unless
 a weaker one clearly arrives earlier (SpotFi's insight: reflections travel farther). Measured on
@@ -22,10 +22,10 @@ import numpy as np
 
 from rover.errors import BadInput, SpecError
 from rover.messages import header, make
-from rover.music import JointMusic, parabola_offset
+from rover.operators.aoa.music import JointMusic, parabola_offset
 from rover.operator import Emit, In, Operator, Out
-from rover.rig import Rig, rig_from_text
-from rover.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
+from rover.formats.rig import Rig, rig_from_text
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
 
 log = logging.getLogger("rover.aoa")
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rover.evaluation import RunRecord, Truth, aoa_errors, poses_at, start_frame
+from rover.evaluation.metrics import RunRecord, Truth, aoa_errors, poses_at, start_frame
 
 ELLIPSE_SIGMA = 2.0
 

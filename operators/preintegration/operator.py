@@ -21,7 +21,7 @@ import numpy as np
 from rover.errors import BadInput, SpecError
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.rig import rig_from_text
+from rover.formats.rig import rig_from_text
 
 log = logging.getLogger("rover.preintegration")
 

@@ -13,7 +13,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
-from rover.wifi import CHANNEL_WIDTH_HZ, INTEL5300_CHANNELS_5GHZ, channel_freq_hz
+from rover.formats.wifi import CHANNEL_WIDTH_HZ, INTEL5300_CHANNELS_5GHZ, channel_freq_hz
 
 HARMONIC_FLOOR_DB = -20.0
 """Emissions weaker than this relative to the tag's own channel are not conflicts."""

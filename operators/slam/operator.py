@@ -2,7 +2,7 @@
 
 An epoch is the stamp of an AoA burst for which the preintegration emitted the motion since the
 previous one; the AoAs sharing that stamp are its bearings. Each epoch appends to the window
-(rover.sliding_window), which is re-solved with Clarabel and refined; the oldest epoch then
+(rover.operators.slam.sliding_window), which is re-solved with Clarabel and refined; the oldest epoch then
 leaves the window as final. Outputs: the live pose at every epoch, each epoch's final pose as it
 leaves the window, the path now and then, the tags with their covariance, and solver diagnostics.
 """
@@ -20,7 +20,7 @@ import numpy as np
 
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.sliding_window import Edge, SlidingWindow, WindowSettings
+from rover.operators.slam.sliding_window import Edge, SlidingWindow, WindowSettings
 
 log = logging.getLogger("rover.slam")
 

@@ -8,15 +8,16 @@ from __future__ import annotations
 
 import ipaddress
 from dataclasses import dataclass
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from rover import params as P
+from rover.pipeline import params as P
 from rover.errors import Diagnostic, SpecError
 from rover.messages import ANY
 from rover.operator import In, Operator, Source
-from rover.registry import BUILTINS, UnknownOperator, resolve
-from rover.spec import OperatorSpec, PipelineSpec, Wire, did_you_mean, parse, read_document
+from rover.pipeline.resolve import UnknownOperator, resolve
+from rover.pipeline.spec import OperatorSpec, PipelineSpec, Wire, did_you_mean, parse, read_document
 
 
 @dataclass
@@ -210,16 +211,16 @@ def _check_hosts(doc, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
                                      "(connect to an endpoint another host listens on)", key=True))
 
 
-def check(spec: PipelineSpec, problems: list[Diagnostic] | None = None) -> Pipeline:
-    """Resolve operators, params and wires; raise SpecError with every problem found."""
+def check(spec: PipelineSpec, builtins: Mapping[str, str], problems: list[Diagnostic] | None = None) -> Pipeline:
+    """Resolve operators (short names through `builtins`), params and wires; raise SpecError with every problem."""
     problems = list(problems or [])
     doc = spec.doc
     nodes: dict[str, Node] = {}
     for op in spec.operators.values():
         try:
-            cls = resolve(op.uses)
+            cls = resolve(op.uses, builtins)
         except UnknownOperator as exc:
-            hint = did_you_mean(op.uses, BUILTINS) if "." not in op.uses else ""
+            hint = did_you_mean(op.uses, builtins) if "." not in op.uses else ""
             problems.append(doc.diag(("operators", op.name, "uses"), f"{exc}{hint}"))
             continue
         nodes[op.name] = Node(op, cls, _params(doc, op, cls, problems))
@@ -231,7 +232,7 @@ def check(spec: PipelineSpec, problems: list[Diagnostic] | None = None) -> Pipel
     return Pipeline(spec, nodes)
 
 
-def load_and_check(path: str | Path, overrides: dict[str, Any] | None = None) -> Pipeline:
+def load_and_check(path: str | Path, builtins: Mapping[str, str], overrides: dict[str, Any] | None = None) -> Pipeline:
     """Read, parse and check a pipeline file in one go (what `rover check` and `rover run` do)."""
     spec, problems = parse(read_document(path), overrides)
-    return check(spec, problems)
+    return check(spec, builtins, problems)

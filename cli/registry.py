@@ -1,0 +1,18 @@
+"""The built-in operators: short names for `uses:`, as `module:Class` strings resolved on use."""
+
+from __future__ import annotations
+
+BUILTINS: dict[str, str] = {
+    "dataset_replay": "rover.drivers.replay:DatasetReplay",
+    "channel_sweep": "rover.operators.channel_sweep.operator:ChannelSweep",
+    "csi_decode": "rover.operators.csi_decode:CsiDecode",
+    "aoa": "rover.operators.aoa.operator:Aoa",
+    "preintegration": "rover.operators.preintegration.operator:Preintegration",
+    "slam": "rover.operators.slam.operator:Slam",
+    "channel_hop": "rover.drivers.channel_hop:ChannelHop",
+    "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
+    "csi_file": "rover.drivers.csi_file:CsiFile",
+    "recorder": "rover.drivers.recorder:Recorder",
+    "run_outputs": "rover.drivers.run_outputs:RunOutputs",
+}
+"""Short name -> `module:Class`; modules are imported only when a pipeline uses them."""

@@ -1,0 +1,1 @@
+"""Angle of arrival: the operator, joint angle-delay MUSIC and the array model."""

@@ -1,0 +1,1 @@
+"""Sweeping the tags' channels: the labelling operator and the channel plan."""

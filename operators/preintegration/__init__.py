@@ -1,0 +1,1 @@
+"""IMU preintegration between AoA epochs."""

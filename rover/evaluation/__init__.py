@@ -1,0 +1,1 @@
+"""Comparing a run with ground truth: metrics and figures."""

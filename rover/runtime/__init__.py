@@ -1,0 +1,1 @@
+"""Running a checked pipeline: event-time scheduling, operator tasks, hosts over Zenoh."""
