@@ -22,10 +22,10 @@ from rover.datasets.convert import convert
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
 from rover.formats.intel5300 import decode_bfee
-from rover.messages import deserialize, make
-from rover.operators.aoa.operator import Aoa
 from rover.formats.rig import rig_from_text
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
+from rover.messages import deserialize, make
+from rover.operators.aoa.operator import Aoa
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -60,9 +60,18 @@ def evaluate(rig, frames, truth: dict[int, float], nlos: set[int]) -> dict:
     messages = []
     for k, fr in enumerate(frames):
         c = records.csi[k, :, :3, :1]
-        messages.append(make("rover_msgs/msg/Csi", header=fr.header, tag_id=owner[fr.channel], channel=fr.channel,
-                             nrx=3, ntx=1, csi_real=c.real.astype(np.float32).ravel(),
-                             csi_imag=c.imag.astype(np.float32).ravel()))
+        messages.append(
+            make(
+                "rover_msgs/msg/Csi",
+                header=fr.header,
+                tag_id=owner[fr.channel],
+                channel=fr.channel,
+                nrx=3,
+                ntx=1,
+                csi_real=c.real.astype(np.float32).ravel(),
+                csi_imag=c.imag.astype(np.float32).ravel(),
+            )
+        )
     start = time.process_time()
     out = []
     for msg in messages:
@@ -81,8 +90,12 @@ def evaluate(rig, frames, truth: dict[int, float], nlos: set[int]) -> dict:
         errors[kind].append(error)
         errors["z"].append(error / math.degrees(aoa.std_rad))
         k = by_stamp[stamp]
-        burst = [j for j in range(max(0, k - 12), min(len(frames), k + 12)) if frames[j].channel == aoa.channel
-                 and abs(frames[j].header.stamp.sec * 10**9 + frames[j].header.stamp.nanosec - stamp) < 4e7]
+        burst = [
+            j
+            for j in range(max(0, k - 12), min(len(frames), k + 12))
+            if frames[j].channel == aoa.channel
+            and abs(frames[j].header.stamp.sec * 10**9 + frames[j].header.stamp.nanosec - stamp) < 4e7
+        ]
         b = bartlett(records.csi[burst, :, :3, 0], aoa.channel, rig)
         errors[f"bartlett_{kind}"].append(math.degrees(abs(np.angle(np.exp(1j * (b - true))))))
     figures = {"bursts": len(out), "packets_per_cpu_s": len(frames) / cpu_s}
@@ -108,8 +121,12 @@ def plot_cdf(curves: dict[str, list[float]], path: Path) -> None:
     for label, e in curves.items():
         if e:
             e = np.sort(e)
-            ax.plot(e, np.arange(1, len(e) + 1) / len(e), label=f"{label} (median {np.median(e):.1f} deg)",
-                    ls="--" if "Bartlett" in label else "-")
+            ax.plot(
+                e,
+                np.arange(1, len(e) + 1) / len(e),
+                label=f"{label} (median {np.median(e):.1f} deg)",
+                ls="--" if "Bartlett" in label else "-",
+            )
     ax.set_xlim(0, 60)
     ax.set_xlabel("AoA error (deg)")
     ax.set_ylabel("CDF")
@@ -125,8 +142,13 @@ def main() -> None:
     ap.add_argument("--json")
     args = ap.parse_args()
     results: dict = {}
-    curves: dict[str, list[float]] = {"paper LOS": [], "paper NLOS": [], "paper LOS, Bartlett": [],
-                                      "paper NLOS, Bartlett": [], "recording_sample": []}
+    curves: dict[str, list[float]] = {
+        "paper LOS": [],
+        "paper NLOS": [],
+        "paper LOS, Bartlett": [],
+        "paper NLOS, Bartlett": [],
+        "recording_sample": [],
+    }
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             path = Path(tmp) / f"paper-{seed}.mcap"
@@ -146,19 +168,27 @@ def main() -> None:
             path = Path(tmp) / "sample.mcap"
             convert([sample], path)
             rig, frames, _ = load(path)
-            truth = {int(r["stamp_ns"]): math.radians(float(r["aoa_deg"]))
-                     for r in csv.DictReader((sample / "truth_csi.csv").open())}
+            truth = {
+                int(r["stamp_ns"]): math.radians(float(r["aoa_deg"]))
+                for r in csv.DictReader((sample / "truth_csi.csv").open())
+            }
             results["recording_sample"], errors = evaluate(rig, frames, truth, set())
             curves["recording_sample"] = errors["los"]
     for name, f in results.items():
-        line = (f"aoa {name}: LOS median {f['los_median_deg']:.1f} deg (p90 {f['los_p90_deg']:.1f}), Bartlett "
-                f"{f['bartlett_los_median_deg']:.1f} deg")
+        line = (
+            f"aoa {name}: LOS median {f['los_median_deg']:.1f} deg (p90 {f['los_p90_deg']:.1f}), Bartlett "
+            f"{f['bartlett_los_median_deg']:.1f} deg"
+        )
         if "nlos_median_deg" in f:
-            line += (f"; NLOS median {f['nlos_median_deg']:.1f} deg (p90 {f['nlos_p90_deg']:.1f}), Bartlett "
-                     f"{f['bartlett_nlos_median_deg']:.1f} deg")
-        line += (f"; {f['packets_per_cpu_s']:,.0f} packets/s; |error|/std median {f['error_over_std_median']:.2f} "
-                 f"(Gaussian 0.67), below 1 {f['error_over_std_within_1']:.0%} (68%), below 3 "
-                 f"{f['error_over_std_within_3']:.0%} (99.7%)")
+            line += (
+                f"; NLOS median {f['nlos_median_deg']:.1f} deg (p90 {f['nlos_p90_deg']:.1f}), Bartlett "
+                f"{f['bartlett_nlos_median_deg']:.1f} deg"
+            )
+        line += (
+            f"; {f['packets_per_cpu_s']:,.0f} packets/s; |error|/std median {f['error_over_std_median']:.2f} "
+            f"(Gaussian 0.67), below 1 {f['error_over_std_within_1']:.0%} (68%), below 3 "
+            f"{f['error_over_std_within_3']:.0%} (99.7%)"
+        )
         print(line)
     plot_cdf(curves, ROOT / "bench" / "aoa_cdf.png")
     print(f"wrote {ROOT / 'bench' / 'aoa_cdf.png'}")

@@ -35,8 +35,9 @@ def write_bag(path: Path, n: int) -> None:
         for i in range(n):
             stamp = T0_NS + i * 4_000_000
             if i % 5 == 4:
-                writer.write(csi, stamp, serialize(make("rover_msgs/msg/CsiFrame", header=header(stamp), channel=149,
-                                                        bfee=bfee)))
+                writer.write(
+                    csi, stamp, serialize(make("rover_msgs/msg/CsiFrame", header=header(stamp), channel=149, bfee=bfee))
+                )
             else:
                 imu_msg.header = header(stamp, "imu")
                 writer.write(imu, stamp, serialize(imu_msg))

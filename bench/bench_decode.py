@@ -31,7 +31,7 @@ def records_of(log: Path, nrx: int, ntx: int) -> list[bytes]:
     data, out, pos = log.read_bytes(), [], 0
     while pos + 2 <= len(data):
         (length,) = struct.unpack_from(">H", data, pos)
-        record = data[pos:pos + 2 + length]
+        record = data[pos : pos + 2 + length]
         if record[2] == 0xBB and (record[3 + 8], record[3 + 9]) == (nrx, ntx):
             out.append(record)
         pos += 2 + length
@@ -58,10 +58,14 @@ def main() -> None:
     args = ap.parse_args()
     data_dir = Path(os.environ.get("ROVER_TEST_DATA", ROOT.parent / "shared" / "data"))
     if not (data_dir / "csi").is_dir():
-        sys.exit(f"reference data not found at {data_dir}: it is the shared/data folder beside this repository "
-                 "(set ROVER_TEST_DATA to point at it)")
-    logs = {"3x1": records_of(data_dir / "csi" / "log.all_csi.6.7.6.dat", 3, 1),
-            "3x2": records_of(data_dir / "csi" / "sample_0x1_ap.dat", 3, 2)}
+        sys.exit(
+            f"reference data not found at {data_dir}: it is the shared/data folder beside this repository "
+            "(set ROVER_TEST_DATA to point at it)"
+        )
+    logs = {
+        "3x1": records_of(data_dir / "csi" / "log.all_csi.6.7.6.dat", 3, 1),
+        "3x2": records_of(data_dir / "csi" / "sample_0x1_ap.dat", 3, 2),
+    }
     figures: dict[str, float | int] = {"records": args.records}
     with tempfile.TemporaryDirectory() as tmp:
         for shape, records in logs.items():
@@ -71,8 +75,10 @@ def main() -> None:
                 rate = median_rate(path, args.records, scaled, args.repeats)
                 kind = "scaled" if scaled else "raw"
                 figures[f"{kind}_records_s" if shape == "3x1" else f"{shape}_{kind}_records_s"] = rate
-                print(f"decode: {rate:,.0f} records/s ({kind}; {args.records:,} {shape} records, "
-                      f"{path.stat().st_size / 1e6:.1f} MB, median of {args.repeats})")
+                print(
+                    f"decode: {rate:,.0f} records/s ({kind}; {args.records:,} {shape} records, "
+                    f"{path.stat().st_size / 1e6:.1f} MB, median of {args.repeats})"
+                )
     verdict = "meets" if figures["scaled_records_s"] >= GOAL_RECORDS_S else "MISSES"
     print(f"3x1 scaled {verdict} the goal of {GOAL_RECORDS_S:,} records/s")
     if args.json:

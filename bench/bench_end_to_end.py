@@ -30,33 +30,61 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         dataset = tmp / "paper.mcap"
-        subprocess.run([*ROVER, "simulate", "--scenario", "paper", "--seed", str(args.seed), "-o", str(dataset)],
-                       check=True)
+        subprocess.run(
+            [*ROVER, "simulate", "--scenario", "paper", "--seed", str(args.seed), "-o", str(dataset)], check=True
+        )
         data_s = duration_s(dataset)
         start = time.perf_counter()
         subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(tmp / "one")], check=True)
         one_s = time.perf_counter() - start
         port = free_port()
         start = time.perf_counter()
-        procs = [subprocess.Popen([*ROVER, "run", "--host", host, "--dataset", str(dataset), "--output",
-                                   str(tmp / "three"), "--set", f"port={port}"]) for host in ("laptop", "base", "nuc")]
+        procs = [
+            subprocess.Popen(
+                [
+                    *ROVER,
+                    "run",
+                    "--host",
+                    host,
+                    "--dataset",
+                    str(dataset),
+                    "--output",
+                    str(tmp / "three"),
+                    "--set",
+                    f"port={port}",
+                ]
+            )
+            for host in ("laptop", "base", "nuc")
+        ]
         codes = [p.wait() for p in procs]
         three_s = time.perf_counter() - start
         if any(codes):
             raise SystemExit(f"three-host run failed: exit codes {codes}")
         metrics = json.loads((tmp / "one" / "metrics.json").read_text())
-        same = all((tmp / "one" / n).read_bytes() == (tmp / "three" / n).read_bytes()
-                   for n in ("trajectory.tum", "tags.csv"))
-    figures = {"data_s": data_s, "one_process_s": one_s, "three_hosts_s": three_s,
-               "realtime_factor_one_process": data_s / one_s, "realtime_factor_three_hosts": data_s / three_s,
-               "three_hosts_over_one": three_s / one_s, "identical_outputs": same,
-               "robot_mean_m": metrics["robot"]["trajectory.tum"]["unaligned"]["mean_m"],
-               "los_tags_mean_m": metrics["los_tags_mean_m"], "nlos_tags_mean_m": metrics["nlos_tags_mean_m"]}
-    print(f"paper run ({data_s:.0f} s of data): one process {one_s:.1f} s ({data_s / one_s:.1f}x real time), "
-          f"three hosts on loopback {three_s:.1f} s ({data_s / three_s:.1f}x; {three_s / one_s:.2f} of one process); "
-          f"trajectory.tum and tags.csv identical: {same}")
-    print(f"errors: robot mean {figures['robot_mean_m'] * 100:.1f} cm, LOS tags {figures['los_tags_mean_m'] * 100:.1f} cm, "
-          f"NLOS tag {figures['nlos_tags_mean_m'] * 100:.1f} cm")
+        same = all(
+            (tmp / "one" / n).read_bytes() == (tmp / "three" / n).read_bytes() for n in ("trajectory.tum", "tags.csv")
+        )
+    figures = {
+        "data_s": data_s,
+        "one_process_s": one_s,
+        "three_hosts_s": three_s,
+        "realtime_factor_one_process": data_s / one_s,
+        "realtime_factor_three_hosts": data_s / three_s,
+        "three_hosts_over_one": three_s / one_s,
+        "identical_outputs": same,
+        "robot_mean_m": metrics["robot"]["trajectory.tum"]["unaligned"]["mean_m"],
+        "los_tags_mean_m": metrics["los_tags_mean_m"],
+        "nlos_tags_mean_m": metrics["nlos_tags_mean_m"],
+    }
+    print(
+        f"paper run ({data_s:.0f} s of data): one process {one_s:.1f} s ({data_s / one_s:.1f}x real time), "
+        f"three hosts on loopback {three_s:.1f} s ({data_s / three_s:.1f}x; {three_s / one_s:.2f} of one process); "
+        f"trajectory.tum and tags.csv identical: {same}"
+    )
+    print(
+        f"errors: robot mean {figures['robot_mean_m'] * 100:.1f} cm, LOS tags {figures['los_tags_mean_m'] * 100:.1f} cm, "
+        f"NLOS tag {figures['nlos_tags_mean_m'] * 100:.1f} cm"
+    )
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))
     return 0

@@ -23,8 +23,15 @@ def write_dataset(path: Path, n: int) -> None:
     with BagWriter(path) as bag:
         for i in range(n):
             stamp = T0_NS + i * 5_000_000
-            bag.write("/imu/data", make("sensor_msgs/msg/Imu", header=header(stamp, "imu_link"),
-                                        linear_acceleration=make("geometry_msgs/msg/Vector3", z=9.81)), stamp)
+            bag.write(
+                "/imu/data",
+                make(
+                    "sensor_msgs/msg/Imu",
+                    header=header(stamp, "imu_link"),
+                    linear_acceleration=make("geometry_msgs/msg/Vector3", z=9.81),
+                ),
+                stamp,
+            )
 
 
 def free_port() -> int:
@@ -67,8 +74,9 @@ def main() -> None:
             raise SystemExit("single-process run failed")
         figures["one_process_s"] = time.perf_counter() - start
         start = time.perf_counter()
-        procs = [rover("run", str(pipeline), "--host", h, *common, "--output", str(tmp / "two"))
-                 for h in ("laptop", "robot")]
+        procs = [
+            rover("run", str(pipeline), "--host", h, *common, "--output", str(tmp / "two")) for h in ("laptop", "robot")
+        ]
         if any(p.wait() != 0 for p in procs):
             raise SystemExit("two-host run failed")
         figures["two_hosts_s"] = time.perf_counter() - start
@@ -76,10 +84,12 @@ def main() -> None:
     figures["one_process_msg_s"] = args.messages / figures["one_process_s"]
     figures["two_hosts_msg_s"] = args.messages / figures["two_hosts_s"]
     figures["identical_outputs"] = same
-    print(f"pipeline: replay -> recorder, {args.messages:,} IMU messages: one process "
-          f"{figures['one_process_s']:.2f} s ({figures['one_process_msg_s']:,.0f} msg/s), two hosts "
-          f"{figures['two_hosts_s']:.2f} s ({figures['two_hosts_msg_s']:,.0f} msg/s), whole runs incl. start-up; "
-          f"outputs {'identical' if same else 'DIFFER'}")
+    print(
+        f"pipeline: replay -> recorder, {args.messages:,} IMU messages: one process "
+        f"{figures['one_process_s']:.2f} s ({figures['one_process_msg_s']:,.0f} msg/s), two hosts "
+        f"{figures['two_hosts_s']:.2f} s ({figures['two_hosts_msg_s']:,.0f} msg/s), whole runs incl. start-up; "
+        f"outputs {'identical' if same else 'DIFFER'}"
+    )
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))
 

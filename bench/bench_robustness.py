@@ -21,11 +21,15 @@ def run_case(tmp: Path, scenario: str, seed: int) -> dict:
     out = tmp / f"run-{scenario}-{seed}"
     subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out)], check=True)
     m = json.loads((out / "metrics.json").read_text())
-    return {"scenario": scenario, "seed": seed,
-            "robot_mean_m": m["robot"]["trajectory.tum"]["unaligned"]["mean_m"],
-            "robot_aligned_mean_m": m["robot"]["trajectory.tum"]["aligned"]["mean_m"],
-            "los_tags_mean_m": m["los_tags_mean_m"], "nlos_tags_mean_m": m["nlos_tags_mean_m"],
-            "never_localized": [k for k, t in m["tags"].items() if not t["localized"]]}
+    return {
+        "scenario": scenario,
+        "seed": seed,
+        "robot_mean_m": m["robot"]["trajectory.tum"]["unaligned"]["mean_m"],
+        "robot_aligned_mean_m": m["robot"]["trajectory.tum"]["aligned"]["mean_m"],
+        "los_tags_mean_m": m["los_tags_mean_m"],
+        "nlos_tags_mean_m": m["nlos_tags_mean_m"],
+        "never_localized": [k for k, t in m["tags"].items() if not t["localized"]],
+    }
 
 
 def main() -> int:
@@ -42,12 +46,17 @@ def main() -> int:
     cm = lambda v: "-" if v is None else f"{v * 100:.1f} cm"
     print(f"{'case':<18}{'robot':>10}{'aligned':>10}{'LOS tags':>10}{'NLOS':>10}  worst ratio to paper seed 1")
     for r in rows:
-        ratios = [r[k] / base[k] for k in ("robot_mean_m", "los_tags_mean_m", "nlos_tags_mean_m")
-                  if r[k] is not None and base[k]]
+        ratios = [
+            r[k] / base[k]
+            for k in ("robot_mean_m", "los_tags_mean_m", "nlos_tags_mean_m")
+            if r[k] is not None and base[k]
+        ]
         r["worst_ratio"] = max(ratios) if ratios else None
         missing = f"; never localized: {', '.join(r['never_localized'])}" if r["never_localized"] else ""
-        print(f"{r['scenario'] + ' ' + str(r['seed']):<18}{cm(r['robot_mean_m']):>10}{cm(r['robot_aligned_mean_m']):>10}"
-              f"{cm(r['los_tags_mean_m']):>10}{cm(r['nlos_tags_mean_m']):>10}  {r['worst_ratio']:.2f}x{missing}")
+        print(
+            f"{r['scenario'] + ' ' + str(r['seed']):<18}{cm(r['robot_mean_m']):>10}{cm(r['robot_aligned_mean_m']):>10}"
+            f"{cm(r['los_tags_mean_m']):>10}{cm(r['nlos_tags_mean_m']):>10}  {r['worst_ratio']:.2f}x{missing}"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
     return 0

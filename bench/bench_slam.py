@@ -23,8 +23,8 @@ import numpy as np
 from mcap.reader import make_reader
 
 from rover.evaluation.metrics import Poses2D, poses_of_messages, trajectory_errors, yaw_from_quaternion
-from rover.messages import deserialize, stamp_ns
 from rover.formats.run_dir import load_truth
+from rover.messages import deserialize, stamp_ns
 from rover.operators.slam.operator import Slam, SlamParams
 
 PAPER = {"robot_mean_m": 0.393, "los_tags_mean_m": 0.746, "nlos_tag_m": 1.459}
@@ -34,13 +34,18 @@ ORDER = {"/rover/aoa": 0, "/rover/preintegration": 1, "/odom": 2}
 
 def read(path: Path, topics: list[str]) -> list[tuple[str, int, object]]:
     with path.open("rb") as f:
-        return [(ch.topic, m.log_time, deserialize(m.data, s.name))
-                for s, ch, m in make_reader(f).iter_messages(topics=topics)]
+        return [
+            (ch.topic, m.log_time, deserialize(m.data, s.name))
+            for s, ch, m in make_reader(f).iter_messages(topics=topics)
+        ]
 
 
 def front_end(dataset: Path, out: Path) -> Path:
-    proc = subprocess.run([sys.executable, "-m", "rover.cli", "-q", "run", "--dataset", str(dataset),
-                           "--output", str(out)], capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "rover.cli", "-q", "run", "--dataset", str(dataset), "--output", str(out)],
+        capture_output=True,
+        text=True,
+    )
     if proc.returncode != 0:
         raise SystemExit(f"rover run failed: {proc.stderr.strip()}")
     return out / "results.mcap"
@@ -77,32 +82,45 @@ def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
         where = errors.to_start.apply(np.array([truth_tags[tag.id]]))[0]
         heard = next(stamp_ns(a) for a in arrays if any(t.id == tag.id for t in a.tags))
         localized = next((stamp_ns(a) for a in arrays if any(t.id == tag.id and t.observable for t in a.tags)), None)
-        tags[tag.id] = {"error_m": float(math.hypot(tag.position.x - where[0], tag.position.y - where[1])),
-                        "nlos": tag.id in nlos, "observable": bool(tag.observable),
-                        "first_heard_s": (heard - t0) / 1e9,
-                        "first_localized_s": None if localized is None else (localized - t0) / 1e9}
+        tags[tag.id] = {
+            "error_m": float(math.hypot(tag.position.x - where[0], tag.position.y - where[1])),
+            "nlos": tag.id in nlos,
+            "observable": bool(tag.observable),
+            "first_heard_s": (heard - t0) / 1e9,
+            "first_localized_s": None if localized is None else (localized - t0) / 1e9,
+        }
     los = [t["error_m"] for t in tags.values() if not t["nlos"]]
     nl = [t["error_m"] for t in tags.values() if t["nlos"]]
     diag = np.array([e.msg.solve_time_s for e in out if e.port == "diagnostics"]) * 1e3
-    return {"robot_mean_m": errors.unaligned["mean_m"], "robot_median_m": errors.unaligned["median_m"],
-            "robot_live_mean_m": live_errors.unaligned["mean_m"] if live_errors else None, "robot_aligned_mean_m": errors.aligned["mean_m"],
-            "los_tags_mean_m": float(np.mean(los)) if los else None,
-            "nlos_tag_m": float(np.mean(nl)) if nl else None, "tags": tags,
-            "latency_median_ms": float(np.median(diag)) if len(diag) else None,
-            "latency_p99_ms": float(np.percentile(diag, 99)) if len(diag) else None}
+    return {
+        "robot_mean_m": errors.unaligned["mean_m"],
+        "robot_median_m": errors.unaligned["median_m"],
+        "robot_live_mean_m": live_errors.unaligned["mean_m"] if live_errors else None,
+        "robot_aligned_mean_m": errors.aligned["mean_m"],
+        "los_tags_mean_m": float(np.mean(los)) if los else None,
+        "nlos_tag_m": float(np.mean(nl)) if nl else None,
+        "tags": tags,
+        "latency_median_ms": float(np.median(diag)) if len(diag) else None,
+        "latency_p99_ms": float(np.percentile(diag, 99)) if len(diag) else None,
+    }
 
 
 def truth_of(dataset: Path) -> tuple[Poses2D, dict, set[int]]:
     truth = load_truth(dataset)
-    return truth.trajectory, {i: xy for i, (xy, _nlos) in truth.tags.items()}, {i for i, (_xy, n) in truth.tags.items() if n}
+    return (
+        truth.trajectory,
+        {i: xy for i, (xy, _nlos) in truth.tags.items()},
+        {i for i, (_xy, n) in truth.tags.items() if n},
+    )
 
 
 def heading_drift_deg(items, truth: Poses2D) -> float:
     """Largest gap between the gyro heading the SLAM uses and the true heading (start-frame)."""
     pre = [m for t, _s, m in items if t == "/rover/preintegration"]
     stamps = np.array([stamp_ns(m) for m in pre])
-    yaw = np.array([yaw_from_quaternion(m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w)
-                    for m in pre])
+    yaw = np.array(
+        [yaw_from_quaternion(m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w) for m in pre]
+    )
     k = np.clip(np.searchsorted(truth.stamp_ns, stamps), 0, len(truth.stamp_ns) - 1)
     k0 = int(np.clip(np.searchsorted(truth.stamp_ns, stamps[0]), 0, len(truth.stamp_ns) - 1))
     gap = np.angle(np.exp(1j * (yaw - (truth.yaw[k] - truth.yaw[k0]))))
@@ -116,16 +134,32 @@ def main() -> int:
     ap.add_argument("--json")
     args = ap.parse_args()
     figures: dict = {"paper": PAPER, "variants": {}, "latency": {}}
-    variants = {"paper formulation (AoA + IMU)": SlamParams(wheel=False),
-                "with wheel odometry (default)": SlamParams(),
-                "full batch, wheel odometry": SlamParams(batch=True)}
+    variants = {
+        "paper formulation (AoA + IMU)": SlamParams(wheel=False),
+        "with wheel odometry (default)": SlamParams(),
+        "full batch, wheel odometry": SlamParams(batch=True),
+    }
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         per_seed = []
         for seed in args.seeds:
             dataset = tmp / f"paper-{seed}.mcap"
-            subprocess.run([sys.executable, "-m", "rover.cli", "-q", "simulate", "--scenario", "paper",
-                            "--seed", str(seed), "-o", str(dataset)], check=True)
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "rover.cli",
+                    "-q",
+                    "simulate",
+                    "--scenario",
+                    "paper",
+                    "--seed",
+                    str(seed),
+                    "-o",
+                    str(dataset),
+                ],
+                check=True,
+            )
             items = inputs(front_end(dataset, tmp / f"run-{seed}"), dataset)
             truth, tags, nlos = truth_of(dataset)
             per_seed.append((seed, items, truth, tags, nlos))
@@ -140,28 +174,43 @@ def main() -> int:
             figures["variants"][name] = rows
             print(f"{name}:")
             for r in rows:
-                tag_text = ", ".join(f"{i}{'*' if t['nlos'] else ''} {t['error_m'] * 100:.0f} cm"
-                                     f" (localized {t['first_localized_s']:.0f} s)" if t["first_localized_s"] is not None
-                                     else f"{i} {t['error_m'] * 100:.0f} cm (never localized)"
-                                     for i, t in sorted(r["tags"].items()))
+                tag_text = ", ".join(
+                    f"{i}{'*' if t['nlos'] else ''} {t['error_m'] * 100:.0f} cm"
+                    f" (localized {t['first_localized_s']:.0f} s)"
+                    if t["first_localized_s"] is not None
+                    else f"{i} {t['error_m'] * 100:.0f} cm (never localized)"
+                    for i, t in sorted(r["tags"].items())
+                )
                 live = f" (live {r['robot_live_mean_m'] * 100:.1f} cm)" if r["robot_live_mean_m"] is not None else ""
-                latency = (f"; latency median {r['latency_median_ms']:.1f} ms, p99 {r['latency_p99_ms']:.1f} ms"
-                           if r["latency_median_ms"] is not None else "")
-                print(f"  seed {r['seed']}: robot mean {r['robot_mean_m'] * 100:.1f} cm, median "
-                      f"{r['robot_median_m'] * 100:.1f} cm{live}; tags {tag_text}"
-                      f"{latency}; {r['cpu_s']:.1f} s CPU")
+                latency = (
+                    f"; latency median {r['latency_median_ms']:.1f} ms, p99 {r['latency_p99_ms']:.1f} ms"
+                    if r["latency_median_ms"] is not None
+                    else ""
+                )
+                print(
+                    f"  seed {r['seed']}: robot mean {r['robot_mean_m'] * 100:.1f} cm, median "
+                    f"{r['robot_median_m'] * 100:.1f} cm{live}; tags {tag_text}"
+                    f"{latency}; {r['cpu_s']:.1f} s CPU"
+                )
             mean = lambda key: float(np.mean([r[key] for r in rows if r[key] is not None]))
-            print(f"  mean over seeds: robot {mean('robot_mean_m') * 100:.1f} cm (paper 39.3), LOS tags "
-                  f"{mean('los_tags_mean_m') * 100:.1f} cm (paper 74.6), NLOS tag {mean('nlos_tag_m') * 100:.1f} cm "
-                  f"(paper 145.9)")
+            print(
+                f"  mean over seeds: robot {mean('robot_mean_m') * 100:.1f} cm (paper 39.3), LOS tags "
+                f"{mean('los_tags_mean_m') * 100:.1f} cm (paper 74.6), NLOS tag {mean('nlos_tag_m') * 100:.1f} cm "
+                f"(paper 145.9)"
+            )
         print(f"gyro heading drift over a run (max): {max(figures['heading_drift_deg']):.2f} deg")
         _seed, items, *_ = per_seed[0]
         for window in args.windows:
             out, _cpu = run_slam(items, SlamParams(window=window), limit_epochs=window + 150)
             times = np.array([e.msg.solve_time_s for e in out if e.port == "diagnostics"][window:]) * 1e3
-            figures["latency"][window] = {"median_ms": float(np.median(times)), "p99_ms": float(np.percentile(times, 99))}
-            print(f"window {window:4d} epochs: update latency median {np.median(times):.1f} ms, "
-                  f"p99 {np.percentile(times, 99):.1f} ms")
+            figures["latency"][window] = {
+                "median_ms": float(np.median(times)),
+                "p99_ms": float(np.percentile(times, 99)),
+            }
+            print(
+                f"window {window:4d} epochs: update latency median {np.median(times):.1f} ms, "
+                f"p99 {np.percentile(times, 99):.1f} ms"
+            )
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))
     return 0

@@ -35,9 +35,12 @@ def free_port() -> int:
 
 
 def imu(i: int):
-    return make(IMU, header=header(1_700_000_000_000_000_000 + i * 5_000_000, "imu_link"),
-                angular_velocity=make("geometry_msgs/msg/Vector3", z=0.001 * i),
-                linear_acceleration=make("geometry_msgs/msg/Vector3", z=9.81))
+    return make(
+        IMU,
+        header=header(1_700_000_000_000_000_000 + i * 5_000_000, "imu_link"),
+        angular_velocity=make("geometry_msgs/msg/Vector3", z=0.001 * i),
+        linear_acceleration=make("geometry_msgs/msg/Vector3", z=9.81),
+    )
 
 
 def peer(port: int, n: int, decode: bool) -> None:
@@ -45,8 +48,9 @@ def peer(port: int, n: int, decode: bool) -> None:
     done = threading.Event()
     times: list[float] = []
     with open_session(SessionSpec(connect=[f"tcp/127.0.0.1:{port}"], label="peer")) as session:
-        pong = session.declare_publisher(PONG_KEY, encoding=codec.encoding(IMU),
-                                         congestion_control=zenoh.CongestionControl.BLOCK)
+        pong = session.declare_publisher(
+            PONG_KEY, encoding=codec.encoding(IMU), congestion_control=zenoh.CongestionControl.BLOCK
+        )
 
         def on_data(sample: zenoh.Sample) -> None:
             codec.read_attachment(sample.attachment.to_bytes())
@@ -85,12 +89,18 @@ def main() -> None:
     figures = measure(args.messages, args.pings, decode=False)
     decoded = measure(args.messages, 0, decode=True)
     figures["throughput_decoded_msg_s"] = decoded["throughput_msg_s"]
-    print(f"transport: {figures['throughput_msg_s']:,.0f} msg/s CDR Imu between two processes "
-          f"({figures['received']:,}/{args.messages:,} received; goal >= 50,000)")
-    print(f"transport: {figures['throughput_decoded_msg_s']:,.0f} msg/s when the receiver also deserializes "
-          f"every message ({decoded['received']:,}/{args.messages:,} received)")
-    print(f"transport: round trip p50 {figures['rtt_p50_ms']:.3f} ms, p99 {figures['rtt_p99_ms']:.3f} ms "
-          "(goal p50 <= 0.5 ms)")
+    print(
+        f"transport: {figures['throughput_msg_s']:,.0f} msg/s CDR Imu between two processes "
+        f"({figures['received']:,}/{args.messages:,} received; goal >= 50,000)"
+    )
+    print(
+        f"transport: {figures['throughput_decoded_msg_s']:,.0f} msg/s when the receiver also deserializes "
+        f"every message ({decoded['received']:,}/{args.messages:,} received)"
+    )
+    print(
+        f"transport: round trip p50 {figures['rtt_p50_ms']:.3f} ms, p99 {figures['rtt_p99_ms']:.3f} ms "
+        "(goal p50 <= 0.5 ms)"
+    )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(figures, f, indent=2)
@@ -99,15 +109,23 @@ def main() -> None:
 def measure(n_messages: int, n_pings: int, decode: bool) -> dict:
     port = free_port()
     with open_session(SessionSpec(listen=[f"tcp/127.0.0.1:{port}"], label="bench")) as session:
-        child = subprocess.Popen([sys.executable, __file__, "--peer", str(port), "--messages", str(n_messages)]
-                                 + (["--decode"] if decode else []), stdout=subprocess.PIPE, text=True)
+        child = subprocess.Popen(
+            [sys.executable, __file__, "--peer", str(port), "--messages", str(n_messages)]
+            + (["--decode"] if decode else []),
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         while not list(session.liveliness().get(READY_KEY)):
             time.sleep(0.05)
-        pub = session.declare_publisher(DATA_KEY, encoding=codec.encoding(IMU),
-                                        congestion_control=zenoh.CongestionControl.BLOCK,
-                                        reliability=zenoh.Reliability.RELIABLE)
-        ping = session.declare_publisher(PING_KEY, encoding=codec.encoding(IMU),
-                                         congestion_control=zenoh.CongestionControl.BLOCK)
+        pub = session.declare_publisher(
+            DATA_KEY,
+            encoding=codec.encoding(IMU),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        ping = session.declare_publisher(
+            PING_KEY, encoding=codec.encoding(IMU), congestion_control=zenoh.CongestionControl.BLOCK
+        )
         got = threading.Event()
         session.declare_subscriber(PONG_KEY, lambda _s: got.set())
         time.sleep(0.3)
@@ -130,7 +148,7 @@ def measure(n_messages: int, n_pings: int, decode: bool) -> dict:
         report = json.loads(child.stdout.readline())
         child.wait(timeout=30)
 
-    rtt_ms = np.array(rtts[len(rtts) // 10:] or [np.nan]) * 1e3
+    rtt_ms = np.array(rtts[len(rtts) // 10 :] or [np.nan]) * 1e3
     return {
         "messages": n_messages,
         "received": report["received"],

@@ -42,23 +42,31 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
     """Summary line and warnings of one pipeline or setup file; raises on problems."""
-    from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, max_tags
     from rover.formats.rig import parse_rig
+    from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, max_tags
     from rover.pipeline.spec import read_document
     from rover.pipeline.validation import check, parse
 
     doc = read_document(file)
-    if isinstance(doc.data, dict) and "operators" not in doc.data and ({"receiver", "tags", "excitation"} & set(doc.data)):
+    if (
+        isinstance(doc.data, dict)
+        and "operators" not in doc.data
+        and ({"receiver", "tags", "excitation"} & set(doc.data))
+    ):
         rig = parse_rig(doc)
         warnings = [f"{d} (warning)" for d in rig.warnings]
-        warnings += [f"{file}: warning: channel plan: {c.message}"
-                     for c in conflicts(rig.excitation_channel, {t.id: t.channel for t in rig.tags})]
+        warnings += [
+            f"{file}: warning: channel plan: {c.message}"
+            for c in conflicts(rig.excitation_channel, {t.id: t.channel for t in rig.tags})
+        ]
         tags = ", ".join(f"{t.id}@{t.channel}" for t in rig.tags)
         best = best_excitation()
         here = len(max_tags(rig.excitation_channel))
         advice = "" if here >= best.max_tags else f"; channel {best.channel} would allow {best.max_tags}"
-        return (f"{file}: ok: rig with {len(rig.antenna_positions_m)} antennas, excitation channel "
-                f"{rig.excitation_channel} (at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"), warnings
+        return (
+            f"{file}: ok: rig with {len(rig.antenna_positions_m)} antennas, excitation channel "
+            f"{rig.excitation_channel} (at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"
+        ), warnings
     spec, problems = parse(doc, overrides)
     return check(spec, BUILTINS, problems).summary(), []
 
@@ -84,8 +92,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from rover.runtime.runner import run
     from rover.pipeline.validation import load_and_check
+    from rover.runtime.runner import run
 
     pipeline = load_and_check(args.pipeline or default_pipeline(), BUILTINS, _overrides(args))
     return run(pipeline, args.host)
@@ -123,9 +131,19 @@ def cmd_convert(args: argparse.Namespace) -> int:
         roles[role] = name
     progress, done = terminal_progress()
     try:
-        report = convert(args.sources, args.output, setup=args.setup, topics=roles, start=args.start, end=args.end,
-                         truth=args.truth, tags=args.tags, force=args.force,
-                         command_line=shlex.join(["rover", *sys.argv[1:]]), progress=progress)
+        report = convert(
+            args.sources,
+            args.output,
+            setup=args.setup,
+            topics=roles,
+            start=args.start,
+            end=args.end,
+            truth=args.truth,
+            tags=args.tags,
+            force=args.force,
+            command_line=shlex.join(["rover", *sys.argv[1:]]),
+            progress=progress,
+        )
     finally:
         done()
     for line in report.lines():
@@ -179,8 +197,9 @@ def _add_set(p: argparse.ArgumentParser) -> None:
 
 
 def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="rover", description="Localize a robot and WiFi backscatter tags "
-                                 "with AoA-IMU SLAM, as a Zenoh dataflow.")
+    ap = argparse.ArgumentParser(
+        prog="rover", description="Localize a robot and WiFi backscatter tags with AoA-IMU SLAM, as a Zenoh dataflow."
+    )
     ap.add_argument("--version", action="version", version=f"rover {__version__}")
     ap.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     ap.add_argument("-q", "--quiet", action="store_true", help="only errors")

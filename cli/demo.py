@@ -79,8 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     for path in sorted(args.output.iterdir()):
         if not path.name.startswith("."):
             console.print(f"  {path}")
-    console.print(f"Open results.mcap in Foxglove; `rover eval {args.output}` prints every error "
-                  "(trajectory.tum is a TUM file evo reads too).")
+    console.print(
+        f"Open results.mcap in Foxglove; `rover eval {args.output}` prints every error "
+        "(trajectory.tum is a TUM file evo reads too)."
+    )
     return 0
 
 

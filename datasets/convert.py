@@ -24,11 +24,11 @@ import yaml
 from rosbags.highlevel import AnyReader, AnyReaderError
 
 import rover
-from rover.formats.bag import BagWriter
-from rover.formats.truth import read_tags_csv, read_tum
 from rover.errors import BadInput, SpecError
-from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
+from rover.formats.bag import BagWriter
 from rover.formats.rig import Rig, load_rig
+from rover.formats.truth import read_tags_csv, read_tum
+from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
 
 log = logging.getLogger("rover.convert")
 
@@ -113,15 +113,19 @@ def _choose_topics(reader: AnyReader, rig: Rig, overrides: dict[str, str]) -> di
             candidates = [t for t, m in by_topic.items() if m == msgtype]
             topic = candidates[0] if len(candidates) == 1 else None
             if len(candidates) > 1:
-                raise BadInput(f"several {msgtype} topics ({', '.join(candidates)}): choose one with --topic {role}=NAME")
+                raise BadInput(
+                    f"several {msgtype} topics ({', '.join(candidates)}): choose one with --topic {role}=NAME"
+                )
         if topic is not None and topic not in by_topic:
             raise BadInput(f"topic {topic} for {role} is not in the bag; topics there: {listing}")
         chosen[role] = topic
     if chosen["imu"] is None:
         raise BadInput(f"no IMU topic (sensor_msgs/msg/Imu) found; topics there: {listing}")
     if chosen["csi"] is None and rig.topics.get("csi", "/csi") is not None:
-        raise BadInput(f"no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: {listing}. For an IMU/odometry-only "
-                       "dataset say so in the setup: topics: {csi: null}")
+        raise BadInput(
+            f"no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: {listing}. For an IMU/odometry-only "
+            "dataset say so in the setup: topics: {csi: null}"
+        )
     return chosen
 
 
@@ -201,19 +205,31 @@ class _Imu:
 
 def _imu(msg: Any, stamp: int) -> Any:
     a, w = msg.linear_acceleration, msg.angular_velocity
-    return make("sensor_msgs/msg/Imu", header=header(stamp, msg.header.frame_id),
-                orientation=make("geometry_msgs/msg/Quaternion", x=msg.orientation.x, y=msg.orientation.y,
-                                 z=msg.orientation.z, w=msg.orientation.w),
-                orientation_covariance=np.asarray(msg.orientation_covariance, dtype=np.float64),
-                angular_velocity=make("geometry_msgs/msg/Vector3", x=w.x, y=w.y, z=w.z),
-                angular_velocity_covariance=np.asarray(msg.angular_velocity_covariance, dtype=np.float64),
-                linear_acceleration=make("geometry_msgs/msg/Vector3", x=a.x, y=a.y, z=a.z),
-                linear_acceleration_covariance=np.asarray(msg.linear_acceleration_covariance, dtype=np.float64))
+    return make(
+        "sensor_msgs/msg/Imu",
+        header=header(stamp, msg.header.frame_id),
+        orientation=make(
+            "geometry_msgs/msg/Quaternion",
+            x=msg.orientation.x,
+            y=msg.orientation.y,
+            z=msg.orientation.z,
+            w=msg.orientation.w,
+        ),
+        orientation_covariance=np.asarray(msg.orientation_covariance, dtype=np.float64),
+        angular_velocity=make("geometry_msgs/msg/Vector3", x=w.x, y=w.y, z=w.z),
+        angular_velocity_covariance=np.asarray(msg.angular_velocity_covariance, dtype=np.float64),
+        linear_acceleration=make("geometry_msgs/msg/Vector3", x=a.x, y=a.y, z=a.z),
+        linear_acceleration_covariance=np.asarray(msg.linear_acceleration_covariance, dtype=np.float64),
+    )
 
 
 def _csi(msg: Any, stamp: int) -> Any:
-    return make("rover_msgs/msg/CsiFrame", header=header(stamp, msg.header.frame_id), channel=int(msg.channel),
-                bfee=np.asarray(msg.bfee, dtype=np.uint8))
+    return make(
+        "rover_msgs/msg/CsiFrame",
+        header=header(stamp, msg.header.frame_id),
+        channel=int(msg.channel),
+        bfee=np.asarray(msg.bfee, dtype=np.uint8),
+    )
 
 
 def _odom(msg: Any, stamp: int) -> Any:
@@ -252,15 +268,26 @@ def _as_rover_cdr(reader: AnyReader, conn: Any, raw: bytes, role: str, same_layo
 def _dataset_setup(rig: Rig) -> str:
     """The rig description stored in the dataset, with topics renamed to the dataset's own."""
     data = yaml.safe_load(rig.text) or {}
-    data["topics"] = {role: (OUTPUT_TOPICS[role] if rig.topics.get(role, "") is not None else None)
-                      for role in OUTPUT_TOPICS}
+    data["topics"] = {
+        role: (OUTPUT_TOPICS[role] if rig.topics.get(role, "") is not None else None) for role in OUTPUT_TOPICS
+    }
     return yaml.safe_dump(data, sort_keys=False)
 
 
-def convert(paths: Sequence[str | Path], output: str | Path, *, setup: str | Path | None = None,
-            topics: dict[str, str] | None = None, start: float | None = None, end: float | None = None,
-            truth: str | Path | None = None, tags: str | Path | None = None, force: bool = False,
-            command_line: str = "", progress: Callable[[int, int], None] | None = None) -> Report:
+def convert(
+    paths: Sequence[str | Path],
+    output: str | Path,
+    *,
+    setup: str | Path | None = None,
+    topics: dict[str, str] | None = None,
+    start: float | None = None,
+    end: float | None = None,
+    truth: str | Path | None = None,
+    tags: str | Path | None = None,
+    force: bool = False,
+    command_line: str = "",
+    progress: Callable[[int, int], None] | None = None,
+) -> Report:
     """Convert bags to a dataset; the output appears only when complete."""
     output = Path(output)
     sources = resolve_sources(paths)
@@ -276,9 +303,16 @@ def convert(paths: Sequence[str | Path], output: str | Path, *, setup: str | Pat
     if output.exists() and not force:
         raise BadInput(f"{output}: exists (use --force to replace it)")
     report = Report(output)
-    provenance = {"tool": f"rover {rover.__version__}", "command": command_line,
-                  "sources": yaml.safe_dump([{"path": str(p), "sha256": _sha256(p)} for p in
-                                             [*sources.bags, setup_path, *[Path(x) for x in (truth, tags) if x]]])}
+    provenance = {
+        "tool": f"rover {rover.__version__}",
+        "command": command_line,
+        "sources": yaml.safe_dump(
+            [
+                {"path": str(p), "sha256": _sha256(p)}
+                for p in [*sources.bags, setup_path, *[Path(x) for x in (truth, tags) if x]]
+            ]
+        ),
+    }
     try:
         reader = AnyReader(sources.bags)
         reader.open()
@@ -324,8 +358,10 @@ def convert(paths: Sequence[str | Path], output: str | Path, *, setup: str | Pat
         log.warning("dropped %d messages: %s", n, why)
     rows.sort(key=lambda r: (r[0], r[1]))
     first = rows[0][0] if rows else 0
-    rows += [(stamp, len(rows) + k, TRUTH_POSE if msg.__msgtype__ == "geometry_msgs/msg/PoseStamped" else TRUTH_TAGS,
-              msg) for k, (stamp, msg) in enumerate(_truth_messages(truth, tags, first))]
+    rows += [
+        (stamp, len(rows) + k, TRUTH_POSE if msg.__msgtype__ == "geometry_msgs/msg/PoseStamped" else TRUTH_TAGS, msg)
+        for k, (stamp, msg) in enumerate(_truth_messages(truth, tags, first))
+    ]
     rows.sort(key=lambda r: (r[0], r[1]))
     metadata = {"rover.setup": {"yaml": _dataset_setup(rig)}, "rover.provenance": provenance}
     if tags:
@@ -342,10 +378,20 @@ def _truth_messages(truth: str | Path | None, tags: str | Path | None, first_ns:
         yield from _truth_from_dataset(Path(truth), with_tags=not tags)
         truth = None
     if tags:
-        array = make("rover_msgs/msg/TagArray", header=header(first_ns, "world"), tags=[
-            make("rover_msgs/msg/Tag", id=t.id, channel=t.channel, observable=True,
-                 position=make("geometry_msgs/msg/Point", x=t.xyz[0], y=t.xyz[1], z=t.xyz[2]))
-            for t in read_tags_csv(tags)])
+        array = make(
+            "rover_msgs/msg/TagArray",
+            header=header(first_ns, "world"),
+            tags=[
+                make(
+                    "rover_msgs/msg/Tag",
+                    id=t.id,
+                    channel=t.channel,
+                    observable=True,
+                    position=make("geometry_msgs/msg/Point", x=t.xyz[0], y=t.xyz[1], z=t.xyz[2]),
+                )
+                for t in read_tags_csv(tags)
+            ],
+        )
         yield first_ns, array
     if truth:
         trajectory = read_tum(truth)
@@ -369,8 +415,10 @@ def _truth_from_dataset(path: Path, with_tags: bool):
         topics[TRUTH_TAGS] = "rover_msgs/msg/TagArray"
     try:
         with path.open("rb") as f:
-            found = [(m.log_time, deserialize(m.data, topics[c.topic]))
-                     for _s, c, m in make_reader(f).iter_messages(topics=list(topics))]
+            found = [
+                (m.log_time, deserialize(m.data, topics[c.topic]))
+                for _s, c, m in make_reader(f).iter_messages(topics=list(topics))
+            ]
     except (McapError, OSError, ValueError) as exc:
         raise BadInput(f"{path}: not a readable dataset: {exc}") from None
     if not found:

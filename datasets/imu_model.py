@@ -22,8 +22,8 @@ UG_M_S2 = 1e-6 * GRAVITY_M_S2
 
 @dataclass(frozen=True)
 class ImuSamples:
-    accel: np.ndarray   # (N, 3) m/s^2, body frame
-    gyro: np.ndarray    # (N, 3) rad/s, body frame
+    accel: np.ndarray  # (N, 3) m/s^2, body frame
+    gyro: np.ndarray  # (N, 3) rad/s, body frame
     gyro_bias: np.ndarray
     accel_bias: np.ndarray
 
@@ -32,13 +32,21 @@ def imu_samples(state: State, spec: Imu, rng: np.random.Generator) -> ImuSamples
     n = len(state.yaw)
     dt = 1.0 / spec.rate_hz
     cos, sin = np.cos(state.yaw), np.sin(state.yaw)
-    true_accel = np.stack([cos * state.acc[:, 0] + sin * state.acc[:, 1],
-                           -sin * state.acc[:, 0] + cos * state.acc[:, 1], np.full(n, GRAVITY_M_S2)], axis=1)
+    true_accel = np.stack(
+        [
+            cos * state.acc[:, 0] + sin * state.acc[:, 1],
+            -sin * state.acc[:, 0] + cos * state.acc[:, 1],
+            np.full(n, GRAVITY_M_S2),
+        ],
+        axis=1,
+    )
     true_gyro = np.stack([np.zeros(n), np.zeros(n), state.yaw_rate], axis=1)
     gyro_bias = rng.normal(0, math.radians(spec.gyro_bias_deg_s), 3) + np.cumsum(
-        rng.normal(0, math.radians(spec.gyro_bias_walk_deg_s_rts) * math.sqrt(dt), (n, 3)), axis=0)
+        rng.normal(0, math.radians(spec.gyro_bias_walk_deg_s_rts) * math.sqrt(dt), (n, 3)), axis=0
+    )
     accel_bias = rng.normal(0, spec.accel_bias_mg * MG_M_S2, 3) + np.cumsum(
-        rng.normal(0, spec.accel_bias_walk_mg_rts * MG_M_S2 * math.sqrt(dt), (n, 3)), axis=0)
+        rng.normal(0, spec.accel_bias_walk_mg_rts * MG_M_S2 * math.sqrt(dt), (n, 3)), axis=0
+    )
     gyro_white = math.radians(spec.gyro_noise_deg_s_rthz) * math.sqrt(spec.rate_hz)
     accel_white = spec.accel_noise_ug_rthz * UG_M_S2 * math.sqrt(spec.rate_hz)
     gyro = true_gyro + gyro_bias + rng.normal(0, gyro_white, (n, 3))
@@ -48,7 +56,7 @@ def imu_samples(state: State, spec: Imu, rng: np.random.Generator) -> ImuSamples
 
 @dataclass(frozen=True)
 class OdometrySamples:
-    xy: np.ndarray       # (N, 2) in the odometry frame (the robot's start pose)
+    xy: np.ndarray  # (N, 2) in the odometry frame (the robot's start pose)
     yaw: np.ndarray
     speed: np.ndarray
     yaw_rate: np.ndarray

@@ -46,8 +46,9 @@ class DatasetInfo:
         if simulation:
             sim = yaml.safe_load(simulation) or {}
             out["simulation"] = {k: sim.get(k) for k in ("scenario", "seed", "path_length_m", "nlos")}
-            out["simulation"]["direct_to_multipath_db"] = {str(k): v for k, v in
-                                                           (sim.get("direct_to_multipath_db") or {}).items()}
+            out["simulation"]["direct_to_multipath_db"] = {
+                str(k): v for k, v in (sim.get("direct_to_multipath_db") or {}).items()
+            }
         return out
 
 
@@ -57,8 +58,10 @@ def dataset_info(path: str | Path, csi_topic: str = "/csi") -> DatasetInfo:
     if path.is_dir():
         files = sorted(path.glob("*.mcap"))
         if len(files) != 1:
-            raise BadInput(f"{path}: a bag folder for `rover info` holds one .mcap file (found {len(files)}); "
-                           "convert other bags with `rover convert` first")
+            raise BadInput(
+                f"{path}: a bag folder for `rover info` holds one .mcap file (found {len(files)}); "
+                "convert other bags with `rover convert` first"
+            )
         path = files[0]
     if not path.is_file():
         raise BadInput(f"{path}: no such dataset file")
@@ -81,11 +84,22 @@ def dataset_info(path: str | Path, csi_topic: str = "/csi") -> DatasetInfo:
     for channel in sorted(summary.channels.values(), key=lambda c: c.topic):
         schema = summary.schemas.get(channel.schema_id)
         count = stats.channel_message_counts.get(channel.id, 0)
-        topics.append(TopicInfo(channel.topic, schema.name if schema else "", count,
-                                count / duration_s if duration_s > 0 else 0.0))
-    return DatasetInfo(str(path), stats.message_start_time, stats.message_end_time, duration_s, stats.message_count,
-                       topics, metadata.get(SETUP_METADATA, {}).get("yaml"), dict(sorted(per_channel.items())),
-                       metadata)
+        topics.append(
+            TopicInfo(
+                channel.topic, schema.name if schema else "", count, count / duration_s if duration_s > 0 else 0.0
+            )
+        )
+    return DatasetInfo(
+        str(path),
+        stats.message_start_time,
+        stats.message_end_time,
+        duration_s,
+        stats.message_count,
+        topics,
+        metadata.get(SETUP_METADATA, {}).get("yaml"),
+        dict(sorted(per_channel.items())),
+        metadata,
+    )
 
 
 def render(info: DatasetInfo) -> str:
@@ -110,8 +124,9 @@ def render(info: DatasetInfo) -> str:
     simulation = info.metadata.get("rover.simulation", {}).get("yaml")
     if simulation:
         sim = yaml.safe_load(simulation) or {}
-        lines.append(f"Simulated: scenario {sim.get('scenario')}, seed {sim.get('seed')}, "
-                     f"path {sim.get('path_length_m')} m")
+        lines.append(
+            f"Simulated: scenario {sim.get('scenario')}, seed {sim.get('seed')}, path {sim.get('path_length_m')} m"
+        )
         lines.append("Direct-to-multipath power ratio of the tag-to-robot link (median over packets):")
         nlos = sim.get("nlos", {})
         for tag, ratio in (sim.get("direct_to_multipath_db") or {}).items():

@@ -15,11 +15,11 @@ from rover.datasets.scenario import Trajectory
 class Segment:
     start_s: float
     duration_s: float
-    kind: str                  # "still", "straight", "turn"
+    kind: str  # "still", "straight", "turn"
     origin: tuple[float, float]
     heading: float
-    length_m: float = 0.0      # straight: distance; turn: signed angle (rad)
-    peak: float = 0.0          # straight: top speed (m/s); turn: top yaw rate (rad/s)
+    length_m: float = 0.0  # straight: distance; turn: signed angle (rad)
+    peak: float = 0.0  # straight: top speed (m/s); turn: top yaw rate (rad/s)
     ramp_s: float = 0.0
 
 
@@ -27,11 +27,11 @@ class Segment:
 class State:
     """Poses and derivatives at an array of times, room frame."""
 
-    xy: np.ndarray          # (N, 2)
-    yaw: np.ndarray         # (N,)
-    vel: np.ndarray         # (N, 2) world velocity
-    acc: np.ndarray         # (N, 2) world acceleration
-    yaw_rate: np.ndarray    # (N,)
+    xy: np.ndarray  # (N, 2)
+    yaw: np.ndarray  # (N,)
+    vel: np.ndarray  # (N, 2) world velocity
+    acc: np.ndarray  # (N, 2) world acceleration
+    yaw_rate: np.ndarray  # (N,)
 
 
 class Motion:

@@ -22,9 +22,9 @@ from rover.formats.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCAR
 class Paths:
     """Propagation paths from a source to receiver points: lengths and unit directions toward the source."""
 
-    length_m: np.ndarray     # (N, P)
-    gain: np.ndarray         # (N, P) real amplitude
-    direction: np.ndarray    # (N, P, 2) unit vectors from the receiver toward where the path arrives from
+    length_m: np.ndarray  # (N, P)
+    gain: np.ndarray  # (N, P) real amplitude
+    direction: np.ndarray  # (N, P, 2) unit vectors from the receiver toward where the path arrives from
 
 
 def images(source: np.ndarray, room_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
@@ -48,27 +48,39 @@ def subcarrier_offsets_hz() -> np.ndarray:
     return SUBCARRIERS_20MHZ * SUBCARRIER_SPACING_HZ
 
 
-def backscatter_csi(ap: np.ndarray, tag: np.ndarray, robot_xy: np.ndarray, robot_yaw: np.ndarray,
-                    antennas_m: np.ndarray, excitation_channel: int, tag_channel: int, room_m: tuple[float, float],
-                    reflection: float, direct_attenuation_db: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def backscatter_csi(
+    ap: np.ndarray,
+    tag: np.ndarray,
+    robot_xy: np.ndarray,
+    robot_yaw: np.ndarray,
+    antennas_m: np.ndarray,
+    excitation_channel: int,
+    tag_channel: int,
+    room_m: tuple[float, float],
+    reflection: float,
+    direct_attenuation_db: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free CSI (N, 30, M) at N robot poses, and the direct-to-multipath power ratio (N,) in dB of the
     tag-to-robot link: the first hop's paths share one angle, so only the second hop's set the AoA's difficulty."""
     n = len(robot_xy)
     offsets = subcarrier_offsets_hz()
-    f1 = channel_freq_hz(excitation_channel) + offsets        # first hop, AP -> tag
-    f2 = channel_freq_hz(tag_channel) + offsets               # second hop, tag -> robot
+    f1 = channel_freq_hz(excitation_channel) + offsets  # first hop, AP -> tag
+    f2 = channel_freq_hz(tag_channel) + offsets  # second hop, tag -> robot
     hop1 = paths(ap, tag[None, :], room_m, reflection)
     hop2 = paths(tag, robot_xy, room_m, reflection)
     g2 = hop2.gain.copy()
     g2[:, 0] *= 10 ** (-direct_attenuation_db / 20)
     cos, sin = np.cos(robot_yaw), np.sin(robot_yaw)
     d = hop2.direction
-    body = np.stack([cos[:, None] * d[..., 0] + sin[:, None] * d[..., 1],
-                     -sin[:, None] * d[..., 0] + cos[:, None] * d[..., 1]], axis=-1)      # (N, P2, 2) robot frame
-    projection = body @ antennas_m.T                                                      # (N, P2, M)
-    h1 = (hop1.gain[0][:, None] * np.exp(-2j * np.pi * f1[None, :] * hop1.length_m[0][:, None]
-                                         / SPEED_OF_LIGHT_M_S)).sum(axis=0)               # (30,)
-    tau2 = (hop2.length_m[:, :, None] - projection) / SPEED_OF_LIGHT_M_S                  # (N, P2, M)
+    body = np.stack(
+        [cos[:, None] * d[..., 0] + sin[:, None] * d[..., 1], -sin[:, None] * d[..., 0] + cos[:, None] * d[..., 1]],
+        axis=-1,
+    )  # (N, P2, 2) robot frame
+    projection = body @ antennas_m.T  # (N, P2, M)
+    h1 = (
+        hop1.gain[0][:, None] * np.exp(-2j * np.pi * f1[None, :] * hop1.length_m[0][:, None] / SPEED_OF_LIGHT_M_S)
+    ).sum(axis=0)  # (30,)
+    tau2 = (hop2.length_m[:, :, None] - projection) / SPEED_OF_LIGHT_M_S  # (N, P2, M)
     h2 = np.einsum("np,npfm->nfm", g2, np.exp(-2j * np.pi * f2[None, None, :, None] * tau2[:, :, None, :]))
     csi = h1[None, :, None] * h2
     ratio_db = 10 * np.log10(g2[:, 0] ** 2 / np.maximum((g2[:, 1:] ** 2).sum(axis=1), 1e-30))
@@ -96,7 +108,7 @@ class Impairments:
 def impair(csi: np.ndarray, imp: Impairments, rng: np.random.Generator) -> np.ndarray:
     """Apply the receiver's effects and quantize to int8-valued complex CSI (N, 30, M)."""
     offsets = subcarrier_offsets_hz()
-    phase = (-2 * np.pi * offsets[None, :] * imp.sampling_offset_s[:, None] + imp.common_phase[:, None])
+    phase = -2 * np.pi * offsets[None, :] * imp.sampling_offset_s[:, None] + imp.common_phase[:, None]
     out = csi * np.exp(1j * phase)[:, :, None] * np.exp(1j * imp.chain_offsets_rad)[None, None, :]
     power = np.mean(np.abs(out) ** 2, axis=(1, 2))
     sigma = np.sqrt(power / 10 ** (imp.snr_db / 10) / 2)

@@ -9,8 +9,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from rover.pipeline import params as P
 from rover.errors import BadInput, Diagnostic, SpecError
+from rover.pipeline import params as P
 from rover.pipeline.spec import did_you_mean
 from rover.pipeline.yamlpos import Located, load, parse_scalar
 
@@ -98,8 +98,14 @@ class Scenario:
     odometry: Odometry
 
 
-SECTIONS = {"room": Room, "access_point": AccessPoint, "receiver": Receiver, "trajectory": Trajectory,
-            "imu": Imu, "odometry": Odometry}
+SECTIONS = {
+    "room": Room,
+    "access_point": AccessPoint,
+    "receiver": Receiver,
+    "trajectory": Trajectory,
+    "imu": Imu,
+    "odometry": Odometry,
+}
 
 
 def builtin_scenarios() -> list[str]:
@@ -114,8 +120,11 @@ def _section(doc: Located, data: Any, path: tuple, cls: type, problems: list[Dia
     if not isinstance(data, dict):
         problems.append(doc.diag(path, f"{where} must be a mapping"))
         return None
-    wording = P.Wording(unknown=lambda key: f"unknown key {key!r} in {where}",
-                        ill_typed=lambda key: f"{where}.{key}", missing=lambda key, _label: f"{where} needs {key}")
+    wording = P.Wording(
+        unknown=lambda key: f"unknown key {key!r} in {where}",
+        ill_typed=lambda key: f"{where}.{key}",
+        missing=lambda key, _label: f"{where} needs {key}",
+    )
 
     def report(sub: tuple, message: str, at_key: bool) -> None:
         problems.append(doc.diag(path + sub, message, key=at_key and bool(sub)))
@@ -154,8 +163,10 @@ def load_scenario(name_or_path: str, overrides: dict[str, str] | None = None) ->
     else:
         names = builtin_scenarios()
         if name_or_path not in names:
-            raise BadInput(f"unknown scenario {name_or_path!r}{did_you_mean(name_or_path, names)} "
-                           f"(built in: {', '.join(names)}; or give a .yaml file)")
+            raise BadInput(
+                f"unknown scenario {name_or_path!r}{did_you_mean(name_or_path, names)} "
+                f"(built in: {', '.join(names)}; or give a .yaml file)"
+            )
         file = f"{name_or_path}.yaml"
         text = resources.files("rover.datasets").joinpath("scenarios", file).read_text(encoding="utf-8")
     doc = load(text, file)
@@ -166,8 +177,9 @@ def load_scenario(name_or_path: str, overrides: dict[str, str] | None = None) ->
     problems: list[Diagnostic] = []
     for key in doc.data:
         if key not in (*SECTIONS, "tags"):
-            problems.append(doc.diag((key,), f"unknown section {key!r}{did_you_mean(key, [*SECTIONS, 'tags'])}",
-                                     key=True))
+            problems.append(
+                doc.diag((key,), f"unknown section {key!r}{did_you_mean(key, [*SECTIONS, 'tags'])}", key=True)
+            )
     sections = {name: _section(doc, doc.data.get(name), (name,), cls, problems) for name, cls in SECTIONS.items()}
     tags = []
     raw_tags = doc.data.get("tags") or []

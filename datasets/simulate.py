@@ -13,15 +13,15 @@ import numpy as np
 import yaml
 
 import rover
-from rover.formats.bag import BagWriter
 from rover.datasets.imu_model import imu_samples, odometry_samples
 from rover.datasets.motion import Motion
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import Scenario
-from rover.formats.intel5300 import RecordHeader, encode_record
 from rover.errors import BadInput
-from rover.messages import header, make
+from rover.formats.bag import BagWriter
+from rover.formats.intel5300 import RecordHeader, encode_record
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
+from rover.messages import header, make
 
 T0_NS = 1_700_000_000_000_000_000
 """Simulated clock origin (2023-11-14), so stamps look like a real recording's."""
@@ -68,16 +68,20 @@ def _windows(scenario: Scenario, duration_s: float) -> tuple[np.ndarray, np.ndar
 
 def _setup_yaml(scenario: Scenario, antennas: np.ndarray, offsets: np.ndarray) -> str:
     data = {
-        "receiver": {"antenna_positions_m": [[round(float(v), 10) for v in p] for p in antennas],
-                     "phase_offsets_rad": [round(float(v), 6) for v in offsets], "interface": "wlan0"},
+        "receiver": {
+            "antenna_positions_m": [[round(float(v), 10) for v in p] for p in antennas],
+            "phase_offsets_rad": [round(float(v), 6) for v in offsets],
+            "interface": "wlan0",
+        },
         "excitation": {"channel": scenario.access_point.channel},
         "tags": [{"id": t.id, "channel": t.channel} for t in scenario.tags],
         "topics": {"csi": "/csi", "imu": "/imu/data", "odom": "/odom" if scenario.odometry.enabled else None},
         "imu": {"frame_id": "imu_link", "rate_hz": scenario.imu.rate_hz},
         "sweep": {"dwell_s": scenario.receiver.dwell_s},
     }
-    return "# Rig description written by rover simulate (calibration includes its simulated error)\n" + \
-        yaml.safe_dump(data, sort_keys=False)
+    return "# Rig description written by rover simulate (calibration includes its simulated error)\n" + yaml.safe_dump(
+        data, sort_keys=False
+    )
 
 
 class _World:
@@ -96,8 +100,9 @@ class _World:
         return np.angle(np.exp(1j * (yaw - self.heading)))
 
 
-def simulate(scenario: Scenario, seed: int, output: str | Path, command_line: str = "",
-             force: bool = False) -> SimReport:
+def simulate(
+    scenario: Scenario, seed: int, output: str | Path, command_line: str = "", force: bool = False
+) -> SimReport:
     output = Path(output)
     if output.exists() and not force:
         raise BadInput(f"{output}: exists (use --force to replace it)")
@@ -108,10 +113,13 @@ def simulate(scenario: Scenario, seed: int, output: str | Path, command_line: st
     world = _World(scenario.trajectory.start_m, math.radians(scenario.trajectory.heading_deg))
     antennas = antenna_positions(scenario)
     if len(rx.phase_offsets_rad) != len(antennas):
-        raise BadInput(f"receiver.phase_offsets_rad has {len(rx.phase_offsets_rad)} values for {len(antennas)} antennas")
+        raise BadInput(
+            f"receiver.phase_offsets_rad has {len(rx.phase_offsets_rad)} values for {len(antennas)} antennas"
+        )
     true_offsets = np.array(rx.phase_offsets_rad, dtype=np.float64)
-    calibration = true_offsets + np.radians(rng.normal(0, rx.calibration_error_deg, len(antennas))) * \
-        (np.arange(len(antennas)) > 0)
+    calibration = true_offsets + np.radians(rng.normal(0, rx.calibration_error_deg, len(antennas))) * (
+        np.arange(len(antennas)) > 0
+    )
     report = SimReport(output, duration, motion.path_length_m)
     rows: list[tuple[int, int, str, object]] = []
 
@@ -139,16 +147,30 @@ def simulate(scenario: Scenario, seed: int, output: str | Path, command_line: st
             report.packets_per_tag[tag.id] = 0
             continue
         attenuation = rng.uniform(*rx.nlos_attenuation_db) if tag.nlos else 0.0
-        clean, ratio = backscatter_csi(ap, position, state.xy[in_range], state.yaw[in_range], antennas,
-                                       scenario.access_point.channel, tag.channel, room,
-                                       scenario.room.wall_reflection, attenuation)
+        clean, ratio = backscatter_csi(
+            ap,
+            position,
+            state.xy[in_range],
+            state.yaw[in_range],
+            antennas,
+            scenario.access_point.channel,
+            tag.channel,
+            room,
+            scenario.room.wall_reflection,
+            attenuation,
+        )
         csi[in_range] = clean
         report.packets_per_tag[tag.id] = int(in_range.sum())
         report.direct_to_multipath_db[tag.id] = round(float(np.median(ratio)), 2)
     keep = np.flatnonzero(heard)
     n = len(keep)
-    imp = Impairments(rng.uniform(*rx.sampling_offset_ns, n) * 1e-9, rng.uniform(0, 2 * np.pi, n),
-                      rng.uniform(*rx.snr_db, n), rng.uniform(*rx.agc_peak, n), true_offsets)
+    imp = Impairments(
+        rng.uniform(*rx.sampling_offset_ns, n) * 1e-9,
+        rng.uniform(0, 2 * np.pi, n),
+        rng.uniform(*rx.snr_db, n),
+        rng.uniform(*rx.agc_peak, n),
+        true_offsets,
+    )
     quantized = impair(csi[keep], imp, rng)
     latency_s = (rx.latency_ms[0] + rng.exponential(rx.latency_ms[1], n)) * 1e-3
     stamps = T0_NS + np.round((true_t[keep] + latency_s) * 1e9).astype(np.int64)
@@ -159,17 +181,42 @@ def simulate(scenario: Scenario, seed: int, output: str | Path, command_line: st
     clock_offset_us = int(rng.integers(0, 2**32))
     for k, index in enumerate(keep):
         tag = scenario.tags[owner[index]]
-        head = RecordHeader((clock_offset_us + int(true_t[index] * 1e6)) % 2**32, k % 2**16,
-                            (int(rssi[k]),) * 3, NOISE_HEADER_DB, int(agc[k]), int(selection[k]), RATE_N_FLAGS)
+        head = RecordHeader(
+            (clock_offset_us + int(true_t[index] * 1e6)) % 2**32,
+            k % 2**16,
+            (int(rssi[k]),) * 3,
+            NOISE_HEADER_DB,
+            int(agc[k]),
+            int(selection[k]),
+            RATE_N_FLAGS,
+        )
         if len(antennas) != 3:
             raise BadInput("the Intel 5300 has three receive chains: the simulated array needs 3 antennas")
         bfee = encode_record(head, quantized[k][:, :, None])
         stamp = int(stamps[k])
-        add(stamp, "/csi", make("rover_msgs/msg/CsiFrame", header=header(stamp, "base_link"), channel=tag.channel,
-                                bfee=np.frombuffer(bfee, dtype=np.uint8)))
-        angle = true_aoa(np.array(tag.position_m), state.xy[index:index + 1], state.yaw[index:index + 1])[0]
-        add(stamp, "/groundtruth/aoa", make("rover_msgs/msg/Aoa", header=header(stamp, "base_link"), tag_id=tag.id,
-                                            channel=tag.channel, angle_rad=float(angle), packets=1))
+        add(
+            stamp,
+            "/csi",
+            make(
+                "rover_msgs/msg/CsiFrame",
+                header=header(stamp, "base_link"),
+                channel=tag.channel,
+                bfee=np.frombuffer(bfee, dtype=np.uint8),
+            ),
+        )
+        angle = true_aoa(np.array(tag.position_m), state.xy[index : index + 1], state.yaw[index : index + 1])[0]
+        add(
+            stamp,
+            "/groundtruth/aoa",
+            make(
+                "rover_msgs/msg/Aoa",
+                header=header(stamp, "base_link"),
+                tag_id=tag.id,
+                channel=tag.channel,
+                angle_rad=float(angle),
+                packets=1,
+            ),
+        )
 
     imu_t = np.arange(0.0, duration, 1.0 / scenario.imu.rate_hz)
     imu_state = motion.state(imu_t)
@@ -179,9 +226,17 @@ def simulate(scenario: Scenario, seed: int, output: str | Path, command_line: st
     no_orientation[0] = -1.0
     for k, t in enumerate(imu_t):
         stamp = T0_NS + int(round(t * 1e9))
-        add(stamp, "/imu/data", make("sensor_msgs/msg/Imu", header=header(stamp, "imu_link"),
-                                     orientation_covariance=no_orientation, angular_velocity=vec(imu.gyro[k]),
-                                     linear_acceleration=vec(imu.accel[k])))
+        add(
+            stamp,
+            "/imu/data",
+            make(
+                "sensor_msgs/msg/Imu",
+                header=header(stamp, "imu_link"),
+                orientation_covariance=no_orientation,
+                angular_velocity=vec(imu.gyro[k]),
+                linear_acceleration=vec(imu.accel[k]),
+            ),
+        )
     if scenario.odometry.enabled:
         odom_t = np.arange(0.0, duration, 1.0 / scenario.odometry.rate_hz)
         odom_state = motion.state(odom_t)
@@ -206,24 +261,46 @@ def simulate(scenario: Scenario, seed: int, output: str | Path, command_line: st
         pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw[k] / 2), math.cos(yaw[k] / 2)
         add(stamp, "/groundtruth/pose", pose)
     tag_world = {t.id: world.point(np.array(t.position_m)) for t in scenario.tags}
-    add(T0_NS, "/groundtruth/tags", make("rover_msgs/msg/TagArray", header=header(T0_NS, "world"), tags=[
-        make("rover_msgs/msg/Tag", id=t.id, channel=t.channel, observable=True,
-             position=make("geometry_msgs/msg/Point", x=float(tag_world[t.id][0]), y=float(tag_world[t.id][1])))
-        for t in scenario.tags]))
+    add(
+        T0_NS,
+        "/groundtruth/tags",
+        make(
+            "rover_msgs/msg/TagArray",
+            header=header(T0_NS, "world"),
+            tags=[
+                make(
+                    "rover_msgs/msg/Tag",
+                    id=t.id,
+                    channel=t.channel,
+                    observable=True,
+                    position=make("geometry_msgs/msg/Point", x=float(tag_world[t.id][0]), y=float(tag_world[t.id][1])),
+                )
+                for t in scenario.tags
+            ],
+        ),
+    )
 
     rows.sort(key=lambda r: (r[0], r[1]))
     tags_csv = "id,channel,x,y,z,nlos\n" + "".join(
         f"{t.id},{t.channel},{tag_world[t.id][0]:.4f},{tag_world[t.id][1]:.4f},0.0000,{int(t.nlos)}\n"
-        for t in scenario.tags)
-    simulation = {"scenario": scenario.name, "seed": seed, "duration_s": round(duration, 3),
-                  "path_length_m": round(motion.path_length_m, 3),
-                  "direct_to_multipath_db": report.direct_to_multipath_db,
-                  "nlos": {t.id: t.nlos for t in scenario.tags},
-                  "true_phase_offsets_rad": [float(v) for v in true_offsets]}
+        for t in scenario.tags
+    )
+    simulation = {
+        "scenario": scenario.name,
+        "seed": seed,
+        "duration_s": round(duration, 3),
+        "path_length_m": round(motion.path_length_m, 3),
+        "direct_to_multipath_db": report.direct_to_multipath_db,
+        "nlos": {t.id: t.nlos for t in scenario.tags},
+        "true_phase_offsets_rad": [float(v) for v in true_offsets],
+    }
     metadata = {
         "rover.setup": {"yaml": _setup_yaml(scenario, antennas, calibration)},
-        "rover.provenance": {"tool": f"rover {rover.__version__}", "command": command_line,
-                             "sources": f"scenario {scenario.name}, seed {seed}"},
+        "rover.provenance": {
+            "tool": f"rover {rover.__version__}",
+            "command": command_line,
+            "sources": f"scenario {scenario.name}, seed {seed}",
+        },
         "rover.simulation": {"yaml": yaml.safe_dump(simulation, sort_keys=False), "scenario": scenario.text},
         "rover.truth": {"tags_csv": tags_csv},
     }

@@ -16,9 +16,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 from rover.errors import BadInput, SpecError
+from rover.formats.rig import load_rig
 from rover.messages import header, make
 from rover.operator import Emit, Out, Source, Watermark
-from rover.formats.rig import load_rig
 
 log = logging.getLogger("rover.channel_hop")
 DEFAULT_COMMAND = "iw dev {interface} set channel {channel} HT20"
@@ -72,8 +72,9 @@ class ChannelHop(Source):
         if not p.dwell_s > 0:
             raise BadInput(f"channel_hop: dwell_s must be positive, got {p.dwell_s}")
         try:
-            self.commands = [shlex.split(p.command.format(interface=interface or "wlan0", channel=ch))
-                             for ch in channels]
+            self.commands = [
+                shlex.split(p.command.format(interface=interface or "wlan0", channel=ch)) for ch in channels
+            ]
         except (KeyError, IndexError, ValueError) as exc:
             raise BadInput(f"channel_hop: bad command template {p.command!r}: {exc}") from None
         self.channels = channels
@@ -90,8 +91,15 @@ class ChannelHop(Source):
             for channel, argv in zip(self.channels, self.commands):
                 self.runner(argv)
                 now = time.time_ns()
-                yield Emit("hops", make("rover_msgs/msg/ChannelHop", header=header(now, "base_link"),
-                                        interface=self.interface, channel=channel))
+                yield Emit(
+                    "hops",
+                    make(
+                        "rover_msgs/msg/ChannelHop",
+                        header=header(now, "base_link"),
+                        interface=self.interface,
+                        channel=channel,
+                    ),
+                )
                 if stop.wait(self.params.dwell_s):
                     return
                 yield Watermark(time.time_ns())

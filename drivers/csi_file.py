@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rover.formats.intel5300 import StreamDecoder
 from rover.errors import BadInput
+from rover.formats.intel5300 import StreamDecoder
 from rover.messages import header, make
 from rover.operator import Emit, Out, Source, Watermark
 
@@ -68,13 +68,26 @@ class CsiFile(Source):
             yield self._frame(record)
         s = self.stream
         if s.n_skipped or s.n_corrupt or s.n_garbage_bytes:
-            log.warning("csi_file: %s: %d records with other codes skipped, %d corrupt records dropped, "
-                        "%d bytes of garbage skipped", self.path, s.n_skipped, s.n_corrupt, s.n_garbage_bytes)
+            log.warning(
+                "csi_file: %s: %d records with other codes skipped, %d corrupt records dropped, "
+                "%d bytes of garbage skipped",
+                self.path,
+                s.n_skipped,
+                s.n_corrupt,
+                s.n_garbage_bytes,
+            )
 
     def _frame(self, record: bytes) -> Emit:
         self.count += 1
-        return Emit("csi", make("rover_msgs/msg/CsiFrame", header=header(time.time_ns(), "base_link"),
-                                channel=self.params.channel, bfee=np.frombuffer(record, dtype=np.uint8)))
+        return Emit(
+            "csi",
+            make(
+                "rover_msgs/msg/CsiFrame",
+                header=header(time.time_ns(), "base_link"),
+                channel=self.params.channel,
+                bfee=np.frombuffer(record, dtype=np.uint8),
+            ),
+        )
 
     def close(self, complete: bool = True) -> None:
         self._file.close()

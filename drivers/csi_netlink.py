@@ -52,7 +52,7 @@ def parse_datagram(datagram: bytes) -> bytes:
     start = NLMSGHDR.size + CN_MSG.size
     if nl_len > len(datagram) or start + length > len(datagram) or length == 0:
         raise NetlinkFormatError(f"cn_msg length {length} overruns the {len(datagram)}-byte datagram")
-    return datagram[start:start + length]
+    return datagram[start : start + length]
 
 
 def pack_datagram(record: bytes, seq: int = 0) -> bytes:
@@ -70,8 +70,10 @@ def open_connector() -> socket.socket:
         sock.bind((os.getpid(), CN_IDX_IWLAGN))
         sock.setsockopt(SOL_NETLINK, NETLINK_ADD_MEMBERSHIP, CN_IDX_IWLAGN)
     except OSError as exc:
-        raise BadInput(f"csi_netlink: cannot subscribe to the CSI Tool's netlink connector (group "
-                       f"{CN_IDX_IWLAGN}; needs root and the patched iwlwifi driver): {exc.strerror or exc}") from None
+        raise BadInput(
+            f"csi_netlink: cannot subscribe to the CSI Tool's netlink connector (group "
+            f"{CN_IDX_IWLAGN}; needs root and the patched iwlwifi driver): {exc.strerror or exc}"
+        ) from None
     return sock
 
 
@@ -123,8 +125,15 @@ class CsiNetlink(Source):
                 continue
             if self._log is not None:
                 self._log.write(struct.pack(">H", len(record)) + record)
-            yield Emit("csi", make("rover_msgs/msg/CsiFrame", header=header(now, "base_link"),
-                                   channel=self.params.channel, bfee=np.frombuffer(record, dtype=np.uint8)))
+            yield Emit(
+                "csi",
+                make(
+                    "rover_msgs/msg/CsiFrame",
+                    header=header(now, "base_link"),
+                    channel=self.params.channel,
+                    bfee=np.frombuffer(record, dtype=np.uint8),
+                ),
+            )
 
     def close(self, complete: bool = True) -> None:
         self.sock.close()

@@ -19,9 +19,9 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from rover.errors import BadInput, SpecError
+from rover.formats.rig import load_rig
 from rover.messages import Raw, header, message_class
 from rover.operator import Emit, Out, Source, Watermark
-from rover.formats.rig import load_rig
 
 log = logging.getLogger("rover.dataset_replay")
 
@@ -117,8 +117,11 @@ class DatasetReplay(Source):
                 if started_log is None:
                     started_log, started_wall = message.log_time, time.monotonic()
                     if self._setup_yaml is not None:
-                        yield Emit("setup", RigSetup(header=header(message.log_time, "base_link"),
-                                                     setup_yaml=self._setup_yaml), message.log_time)
+                        yield Emit(
+                            "setup",
+                            RigSetup(header=header(message.log_time, "base_link"), setup_yaml=self._setup_yaml),
+                            message.log_time,
+                        )
                 elif speed != "max":
                     due = started_wall + (message.log_time - started_log) / 1e9 / speed
                     while (wait := due - time.monotonic()) > 0:

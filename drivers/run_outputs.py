@@ -19,16 +19,28 @@ from typing import Any
 
 import numpy as np
 
-from rover.evaluation.metrics import evaluate, poses_of_messages
 from rover.evaluation.figures import write_figures
+from rover.evaluation.metrics import evaluate, poses_of_messages
+from rover.formats.run_dir import RUN_FILE, load_truth, record
 from rover.messages import stamp_ns
 from rover.operator import In, Operator
-from rover.formats.run_dir import RUN_FILE, load_truth, record
 
 log = logging.getLogger("rover.outputs")
 
-TAG_COLUMNS = ("id", "channel", "x", "y", "z", "var_x", "cov_xy", "var_y", "observable",
-               "first_heard_s", "first_localized_s", "last_heard_s")
+TAG_COLUMNS = (
+    "id",
+    "channel",
+    "x",
+    "y",
+    "z",
+    "var_x",
+    "cov_xy",
+    "var_y",
+    "observable",
+    "first_heard_s",
+    "first_localized_s",
+    "last_heard_s",
+)
 
 
 def seconds(ns: int | None) -> str:
@@ -67,10 +79,12 @@ class RunOutputsParams:
 class RunOutputs(Operator):
     """Writes trajectory.tum, trajectory_live.tum and tags.csv (and metrics with truth) into `out`."""
 
-    inputs = {"trajectory": In("geometry_msgs/msg/PoseStamped", doc="final poses (slam/trajectory)"),
-              "pose": In("geometry_msgs/msg/PoseStamped", doc="live poses (slam/pose)"),
-              "tags": In("rover_msgs/msg/TagArray"),
-              "aoa": In("rover_msgs/msg/Aoa", required=False, doc="for when each tag was heard")}
+    inputs = {
+        "trajectory": In("geometry_msgs/msg/PoseStamped", doc="final poses (slam/trajectory)"),
+        "pose": In("geometry_msgs/msg/PoseStamped", doc="live poses (slam/pose)"),
+        "tags": In("rover_msgs/msg/TagArray"),
+        "aoa": In("rover_msgs/msg/Aoa", required=False, doc="for when each tag was heard"),
+    }
     Params = RunOutputsParams
 
     def __init__(self, params: RunOutputsParams | None = None):
@@ -112,9 +126,21 @@ class RunOutputs(Operator):
             cov = list(t.covariance_xy) if t is not None else [math.nan] * 4
             position = [f"{t.position.x:.6f}", f"{t.position.y:.6f}", f"{t.position.z:.6f}"] if known else ["", "", ""]
             variances = [f"{cov[0]:.9g}", f"{cov[1]:.9g}", f"{cov[3]:.9g}"] if t is not None else ["", "", ""]
-            lines.append(",".join([str(tag_id), str(r.channel), *position, *variances,
-                                   "1" if t is not None and t.observable else "0", seconds(r.first_heard),
-                                   seconds(r.first_localized), seconds(r.last_heard)]) + "\n")
+            lines.append(
+                ",".join(
+                    [
+                        str(tag_id),
+                        str(r.channel),
+                        *position,
+                        *variances,
+                        "1" if t is not None and t.observable else "0",
+                        seconds(r.first_heard),
+                        seconds(r.first_localized),
+                        seconds(r.last_heard),
+                    ]
+                )
+                + "\n"
+            )
         return "".join(lines)
 
     def close(self, complete: bool = True) -> None:
@@ -141,11 +167,17 @@ class RunOutputs(Operator):
         last = [self.tags[i].last for i in ids]
         localized = [self.tags[i].first_localized is not None and t is not None for i, t in zip(ids, last)]
         xy = np.array([[t.position.x, t.position.y] if ok else [math.nan, math.nan] for t, ok in zip(last, localized)])
-        cov = np.array([np.reshape(t.covariance_xy, (2, 2)) if t is not None else np.full((2, 2), math.nan)
-                        for t in last])
+        cov = np.array(
+            [np.reshape(t.covariance_xy, (2, 2)) if t is not None else np.full((2, 2), math.nan) for t in last]
+        )
         to_poses = lambda msgs: poses_of_messages(sorted(msgs, key=stamp_ns))
-        run = record(to_poses(self.final), to_poses(self.live), (ids, xy.reshape(-1, 2), cov.reshape(-1, 2, 2)),
-                     self.history, self.aoa)
+        run = record(
+            to_poses(self.final),
+            to_poses(self.live),
+            (ids, xy.reshape(-1, 2), cov.reshape(-1, 2, 2)),
+            self.history,
+            self.aoa,
+        )
         metrics = evaluate(run, truth)
         write_atomic(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         write_figures(run, truth, out)

@@ -48,8 +48,9 @@ class CsiDecode(Operator):
         self.batch: list[tuple[Any, int]] = []
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
-        if self.batch and (msg.channel != self.batch[0][0].channel
-                           or stamp_ns - self.batch[0][1] >= self.BATCH_SPAN_S * 1e9):
+        if self.batch and (
+            msg.channel != self.batch[0][0].channel or stamp_ns - self.batch[0][1] >= self.BATCH_SPAN_S * 1e9
+        ):
             yield from self._flush()
         self.batch.append((msg, stamp_ns))
         if len(self.batch) >= self.BATCH_FRAMES:
@@ -72,13 +73,27 @@ class CsiDecode(Operator):
     def _message(self, msg: Any, stamp_ns: int, records, i: int) -> Emit:
         nrx, ntx = int(records.nrx[i]), int(records.ntx[i])
         csi = records.csi[i, :, :nrx, :ntx]
-        return Emit("csi", make(
-            "rover_msgs/msg/Csi", header=msg.header, tag_id=msg.tag_id, channel=msg.channel,
-            bfee_count=int(records.bfee_count[i]), nrx=nrx, ntx=ntx, rssi=records.rssi[i].astype(np.uint8),
-            noise=int(records.noise[i]), agc=int(records.agc[i]), perm=records.perm[i].astype(np.uint8),
-            rate=int(records.rate[i]), scaled=self.params.scaled,
-            csi_real=np.ascontiguousarray(csi.real, dtype=np.float32).ravel(),
-            csi_imag=np.ascontiguousarray(csi.imag, dtype=np.float32).ravel()), stamp_ns)
+        return Emit(
+            "csi",
+            make(
+                "rover_msgs/msg/Csi",
+                header=msg.header,
+                tag_id=msg.tag_id,
+                channel=msg.channel,
+                bfee_count=int(records.bfee_count[i]),
+                nrx=nrx,
+                ntx=ntx,
+                rssi=records.rssi[i].astype(np.uint8),
+                noise=int(records.noise[i]),
+                agc=int(records.agc[i]),
+                perm=records.perm[i].astype(np.uint8),
+                rate=int(records.rate[i]),
+                scaled=self.params.scaled,
+                csi_real=np.ascontiguousarray(csi.real, dtype=np.float32).ravel(),
+                csi_imag=np.ascontiguousarray(csi.imag, dtype=np.float32).ravel(),
+            ),
+            stamp_ns,
+        )
 
     def on_end(self):
         yield from self._flush()

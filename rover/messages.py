@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from importlib import resources
 from typing import Any
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 from rosbags.interfaces import Nodetype
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from rover.errors import BadInput
 
@@ -61,16 +61,31 @@ def message_class(typename: str) -> type:
         raise BadInput(f"unknown message type {typename!r}") from None
 
 
-_NUMPY_DTYPES = {"bool": "bool", "int8": "int8", "uint8": "uint8", "byte": "uint8", "char": "uint8",
-                 "int16": "int16", "uint16": "uint16", "int32": "int32", "uint32": "uint32",
-                 "int64": "int64", "uint64": "uint64", "float32": "float32", "float64": "float64"}
+_NUMPY_DTYPES = {
+    "bool": "bool",
+    "int8": "int8",
+    "uint8": "uint8",
+    "byte": "uint8",
+    "char": "uint8",
+    "int16": "int16",
+    "uint16": "uint16",
+    "int32": "int32",
+    "uint32": "uint32",
+    "int64": "int64",
+    "uint64": "uint64",
+    "float32": "float32",
+    "float64": "float64",
+}
 
 
 def _zero(kind: int, spec: Any) -> Any:
     if kind == Nodetype.BASE:
         name = spec[0]
-        return "" if name in ("string", "wstring") else (False if name == "bool" else 0 if "int" in name
-                                                          or name in ("byte", "char") else 0.0)
+        return (
+            ""
+            if name in ("string", "wstring")
+            else (False if name == "bool" else 0 if "int" in name or name in ("byte", "char") else 0.0)
+        )
     if kind == Nodetype.NAME:
         return make(spec)
     (item_kind, item_spec), length = spec
@@ -103,7 +118,7 @@ def deserialize(payload: bytes, typename: str) -> Any:
     return typestore.deserialize_cdr(payload, typename)
 
 
-@lru_cache(maxsize=None)
+@cache
 def has_header(typename: str) -> bool:
     """True when the type's first field is a std_msgs/Header (its stamp is then at a fixed offset)."""
     fields = typestore.fielddefs.get(typename)
@@ -136,7 +151,7 @@ def header(stamp: int, frame_id: str = "") -> Any:
     return Header(stamp=Time(sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000), frame_id=frame_id)
 
 
-@lru_cache(maxsize=None)
+@cache
 def ros2_msgdef(typename: str) -> str:
     """The concatenated ROS 2 message definition, as MCAP `ros2msg` schemas carry it."""
     text, _ = typestore.generate_msgdef(typename, ros_version=2)

@@ -24,8 +24,10 @@ def reference_data() -> Path:
     """The real captures in ../shared/data (or ROVER_TEST_DATA); tests that need them skip without them."""
     path = Path(os.environ.get("ROVER_TEST_DATA", ROOT.parent / "shared" / "data"))
     if not path.is_dir():
-        pytest.skip(f"reference data not found at {path}: it is the shared/data folder beside this repository "
-                    "(set ROVER_TEST_DATA to point at it)")
+        pytest.skip(
+            f"reference data not found at {path}: it is the shared/data folder beside this repository "
+            "(set ROVER_TEST_DATA to point at it)"
+        )
     return path
 
 
@@ -42,9 +44,12 @@ def write_imu_dataset(path: Path, n_imu: int, *, imu_hz: float = 200.0, odom_eve
     with BagWriter(path) as bag:
         for i in range(n_imu):
             stamp = T0_NS + int(i * 1e9 / imu_hz)
-            imu = make("sensor_msgs/msg/Imu", header=header(stamp, "imu_link"),
-                       angular_velocity=make("geometry_msgs/msg/Vector3", z=float(gyro_z[i])),
-                       linear_acceleration=make("geometry_msgs/msg/Vector3", z=9.81))
+            imu = make(
+                "sensor_msgs/msg/Imu",
+                header=header(stamp, "imu_link"),
+                angular_velocity=make("geometry_msgs/msg/Vector3", z=float(gyro_z[i])),
+                linear_acceleration=make("geometry_msgs/msg/Vector3", z=9.81),
+            )
             bag.write("/imu/data", imu, stamp)
             if odom_every and i % odom_every == 0:
                 odom = make("nav_msgs/msg/Odometry", header=header(stamp, "odom"))
@@ -53,12 +58,17 @@ def write_imu_dataset(path: Path, n_imu: int, *, imu_hz: float = 200.0, odom_eve
     return path
 
 
-def run_rover(*args: str, cwd: Path | None = None, timeout: float = 120, check: bool = False,
-              ) -> subprocess.CompletedProcess:
+def run_rover(
+    *args: str,
+    cwd: Path | None = None,
+    timeout: float = 120,
+    check: bool = False,
+) -> subprocess.CompletedProcess:
     """The real `rover` command in a subprocess, with the tests' operators importable."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-    proc = subprocess.run([sys.executable, "-m", "rover.cli", *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-m", "rover.cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
+    )
     if check and proc.returncode != 0:
         raise AssertionError(f"rover {' '.join(args)} exited {proc.returncode}:\n{proc.stderr}")
     return proc
@@ -66,8 +76,14 @@ def run_rover(*args: str, cwd: Path | None = None, timeout: float = 120, check: 
 
 def popen_rover(*args: str, cwd: Path | None = None) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-    return subprocess.Popen([sys.executable, "-m", "rover.cli", *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "rover.cli", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def read_bag(path: Path) -> list[tuple[str, int, bytes]]:
@@ -89,8 +105,19 @@ def simulated(tmp_path_factory):
         if key not in cache:
             path = root / f"{scenario}-{seed}-{len(cache)}.mcap"
             sets = [a for o in overrides for a in ("--set", o)]
-            run_rover("-q", "simulate", "--scenario", scenario, "--seed", str(seed), *sets, "-o", str(path),
-                      check=True, timeout=300)
+            run_rover(
+                "-q",
+                "simulate",
+                "--scenario",
+                scenario,
+                "--seed",
+                str(seed),
+                *sets,
+                "-o",
+                str(path),
+                check=True,
+                timeout=300,
+            )
             cache[key] = path
         return cache[key]
 

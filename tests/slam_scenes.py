@@ -22,11 +22,16 @@ class Scene:
     tags: np.ndarray
 
 
-def scene(seconds: float = 15.0, epoch_s: float = 0.1, speed_m_s: float = 0.3, radius_m: float | None = 2.0,
-          tags=((3.0, 2.0), (-1.0, 2.5), (4.0, -1.5), (1.0, -2.0))) -> Scene:
+def scene(
+    seconds: float = 15.0,
+    epoch_s: float = 0.1,
+    speed_m_s: float = 0.3,
+    radius_m: float | None = 2.0,
+    tags=((3.0, 2.0), (-1.0, 2.5), (4.0, -1.5), (1.0, -2.0)),
+) -> Scene:
     """Ramp from rest to `speed_m_s` in 1 s, then along a circle of `radius_m` (None: a straight line)."""
     t = np.arange(0.0, seconds, epoch_s)
-    s = np.where(t < 1.0, 0.5 * speed_m_s * t ** 2, 0.5 * speed_m_s + speed_m_s * (t - 1.0))
+    s = np.where(t < 1.0, 0.5 * speed_m_s * t**2, 0.5 * speed_m_s + speed_m_s * (t - 1.0))
     ds = np.where(t < 1.0, speed_m_s * t, speed_m_s)
     if radius_m is None:
         heading = np.zeros_like(t)
@@ -45,8 +50,9 @@ def true_angle(sc: Scene, k: int, tag: int) -> float:
 
 def edge(sc: Scene, k: int) -> Edge:
     dt = sc.t[k] - sc.t[k - 1]
-    delta = np.concatenate([sc.velocity[k] - sc.velocity[k - 1],
-                            sc.position[k] - sc.position[k - 1] - sc.velocity[k - 1] * dt])
+    delta = np.concatenate(
+        [sc.velocity[k] - sc.velocity[k - 1], sc.position[k] - sc.position[k - 1] - sc.velocity[k - 1] * dt]
+    )
     return Edge(float(dt), delta, EXACT_COVARIANCE)
 
 
@@ -63,13 +69,20 @@ def angles(sc: Scene, noise_deg: float = 0.0, outliers: float = 0.0, seed: int =
     return out
 
 
-def estimate(sc: Scene, settings: WindowSettings, measured: list[tuple[int, float]], std_deg: float,
-             update_every: int = 1) -> tuple[SlidingWindow, np.ndarray]:
+def estimate(
+    sc: Scene, settings: WindowSettings, measured: list[tuple[int, float]], std_deg: float, update_every: int = 1
+) -> tuple[SlidingWindow, np.ndarray]:
     """Run the window over the scene; returns it and the robot positions as finally estimated."""
     w = SlidingWindow(settings)
     for k, (tag, angle) in enumerate(measured):
-        w.add_epoch(int(sc.t[k] * 1e9), float(sc.yaw[k]), [tag + 1], np.array([angle]),
-                    np.array([math.radians(std_deg)]), edge(sc, k) if k else None)
+        w.add_epoch(
+            int(sc.t[k] * 1e9),
+            float(sc.yaw[k]),
+            [tag + 1],
+            np.array([angle]),
+            np.array([math.radians(std_deg)]),
+            edge(sc, k) if k else None,
+        )
         if k % update_every == 0 or k == len(measured) - 1:
             w.update()
     final = np.array([f[1:3] for f in w.finals] + [p[1:3] for p in w.poses()])
@@ -78,4 +91,4 @@ def estimate(sc: Scene, settings: WindowSettings, measured: list[tuple[int, floa
 
 def tag_errors(sc: Scene, w: SlidingWindow) -> np.ndarray:
     order = [w.tag_ids.index(i + 1) for i in range(len(sc.tags)) if i + 1 in w.tag_ids]
-    return np.linalg.norm(w.tag_positions()[order] - sc.tags[:len(order)], axis=1)
+    return np.linalg.norm(w.tag_positions()[order] - sc.tags[: len(order)], axis=1)

@@ -7,16 +7,25 @@ import math
 
 import numpy as np
 import pytest
-
 from conftest import read_bag, reference_data
-from rover.formats.intel5300 import decode_bfee
+
 from rover.errors import BadInput
-from rover.messages import deserialize, header, make, stamp_ns
-from rover.operators.aoa.operator import (QUALITY_AMBIGUOUS, QUALITY_GOOD, Aoa, AoaParams, ArrayResponse, Direction,
-                                 burst_std, check_energy, check_geometry)
+from rover.formats.intel5300 import decode_bfee
 from rover.formats.rig import load_rig, rig_from_text
 from rover.formats.run_dir import load_truth
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, subcarrier_freqs_hz
+from rover.messages import deserialize, header, make, stamp_ns
+from rover.operators.aoa.operator import (
+    QUALITY_AMBIGUOUS,
+    QUALITY_GOOD,
+    Aoa,
+    AoaParams,
+    ArrayResponse,
+    Direction,
+    burst_std,
+    check_energy,
+    check_geometry,
+)
 
 D = 0.0258
 TRIANGLE = np.array([[0.0, 0.0], [D, 0.0], [D / 2, -D * math.sqrt(3) / 2]])
@@ -25,8 +34,10 @@ OFFSETS = np.array([0.0, 0.9, -1.7])
 
 def setup_text(antennas=TRIANGLE, offsets=OFFSETS) -> str:
     rows = ", ".join(f"[{x}, {y}]" for x, y in antennas)
-    return (f"receiver: {{antenna_positions_m: [{rows}], phase_offsets_rad: [{', '.join(map(str, offsets))}]}}\n"
-            "excitation: {channel: 165}\ntags: [{id: 1, channel: 149}]\n")
+    return (
+        f"receiver: {{antenna_positions_m: [{rows}], phase_offsets_rad: [{', '.join(map(str, offsets))}]}}\n"
+        "excitation: {channel: 165}\ntags: [{id: 1, channel: 149}]\n"
+    )
 
 
 def synthetic(paths, packets=10, antennas=TRIANGLE, snr_db=30.0, sto_ns=(0.0, 100.0), seed=0, channel=149):
@@ -36,13 +47,16 @@ def synthetic(paths, packets=10, antennas=TRIANGLE, snr_db=30.0, sto_ns=(0.0, 10
     h = np.zeros((30, len(antennas)), dtype=complex)
     for angle, delay, amp in paths:
         u = np.array([math.cos(angle), math.sin(angle)])
-        h += amp * np.exp(-2j * np.pi * f * delay)[:, None] * np.exp(2j * np.pi * f[:, None] * (antennas @ u)[None]
-                                                                     / SPEED_OF_LIGHT_M_S)
+        h += (
+            amp
+            * np.exp(-2j * np.pi * f * delay)[:, None]
+            * np.exp(2j * np.pi * f[:, None] * (antennas @ u)[None] / SPEED_OF_LIGHT_M_S)
+        )
     out = []
     for _ in range(packets):
         sto = rng.uniform(*sto_ns) * 1e-9
         x = h * np.exp(-2j * np.pi * (f - channel_freq_hz(channel)) * sto)[:, None] * np.exp(1j * rng.uniform(0, 6.3))
-        x = x * np.exp(1j * OFFSETS[:len(antennas)])[None]
+        x = x * np.exp(1j * OFFSETS[: len(antennas)])[None]
         sigma = np.sqrt(np.mean(np.abs(x) ** 2) / 10 ** (snr_db / 10) / 2)
         out.append(x + sigma * (rng.standard_normal(x.shape) + 1j * rng.standard_normal(x.shape)))
     return np.array(out)
@@ -53,9 +67,16 @@ def estimate(csi: np.ndarray, params: AoaParams | None = None, setup: str | None
     list(op.on_input("setup", make("rover_msgs/msg/RigSetup", setup_yaml=setup or setup_text()), 0))
     out = []
     for k, packet in enumerate(csi):
-        msg = make("rover_msgs/msg/Csi", header=header(1000 + k * 1_000_000), tag_id=1, channel=channel,
-                   nrx=csi.shape[2], ntx=1, csi_real=packet.real.astype(np.float32).ravel(),
-                   csi_imag=packet.imag.astype(np.float32).ravel())
+        msg = make(
+            "rover_msgs/msg/Csi",
+            header=header(1000 + k * 1_000_000),
+            tag_id=1,
+            channel=channel,
+            nrx=csi.shape[2],
+            ntx=1,
+            csi_real=packet.real.astype(np.float32).ravel(),
+            csi_imag=packet.imag.astype(np.float32).ravel(),
+        )
         out += list(op.on_input("csi", msg, 1000 + k * 1_000_000))
     out += list(op.on_end())
     return [e.msg for e in out]
@@ -98,8 +119,10 @@ def test_calibration_and_sampling_offset_removal_each_matter(switch):
 def test_a_linear_array_works_within_its_field():
     linear = np.array([[0.0, -D], [0.0, 0.0], [0.0, D]])
     for deg in range(-80, 81, 20):
-        (aoa,) = estimate(synthetic([(math.radians(deg), 20e-9, 1.0)], antennas=linear, snr_db=35, seed=deg + 90),
-                          setup=setup_text(linear))
+        (aoa,) = estimate(
+            synthetic([(math.radians(deg), 20e-9, 1.0)], antennas=linear, snr_db=35, seed=deg + 90),
+            setup=setup_text(linear),
+        )
         assert angle_error_deg(aoa.angle_rad, math.radians(deg)) < 2.0, deg
 
 
@@ -133,8 +156,16 @@ def run_frames(rig, frames) -> list:
     out = []
     for k, fr in enumerate(frames):
         c = records.csi[k, :, :3, :1]
-        msg = make("rover_msgs/msg/Csi", header=fr.header, tag_id=owner[fr.channel], channel=fr.channel, nrx=3, ntx=1,
-                   csi_real=c.real.astype(np.float32).ravel(), csi_imag=c.imag.astype(np.float32).ravel())
+        msg = make(
+            "rover_msgs/msg/Csi",
+            header=fr.header,
+            tag_id=owner[fr.channel],
+            channel=fr.channel,
+            nrx=3,
+            ntx=1,
+            csi_real=c.real.astype(np.float32).ravel(),
+            csi_imag=c.imag.astype(np.float32).ravel(),
+        )
         out += [e.msg for e in op.on_input("csi", msg, stamp_ns(fr))]
     return out + [e.msg for e in op.on_end()]
 
@@ -153,9 +184,14 @@ def errors_against(out: list, truth: dict[int, float]) -> tuple[np.ndarray, np.n
 def test_the_independent_recording_within_10_degrees_with_an_honest_std():
     data = reference_data() / "recording_sample"
     rig = load_rig(data / "setup.yaml")
-    truth = {int(r["stamp_ns"]): math.radians(float(r["aoa_deg"])) for r in csv.DictReader((data / "truth_csi.csv").open())}
-    frames = [deserialize(raw, "rover_msgs/msg/CsiFrame") for topic, _s, raw in read_bag(data / "bag" / "bag.mcap")
-              if topic == "/csi"]
+    truth = {
+        int(r["stamp_ns"]): math.radians(float(r["aoa_deg"])) for r in csv.DictReader((data / "truth_csi.csv").open())
+    }
+    frames = [
+        deserialize(raw, "rover_msgs/msg/CsiFrame")
+        for topic, _s, raw in read_bag(data / "bag" / "bag.mcap")
+        if topic == "/csi"
+    ]
     out = run_frames(rig, frames)
     errors, z = errors_against(out, truth)
     assert len(out) > 1000
@@ -174,8 +210,11 @@ def test_the_simulated_paper_room(simulated):
     rig = rig_from_text(meta["rover.setup"]["yaml"])
     messages = read_bag(path)
     frames = [deserialize(raw, "rover_msgs/msg/CsiFrame") for topic, _s, raw in messages if topic == "/csi"]
-    truth = {stamp: deserialize(raw, "rover_msgs/msg/Aoa").angle_rad for topic, stamp, raw in messages
-             if topic == "/groundtruth/aoa"}
+    truth = {
+        stamp: deserialize(raw, "rover_msgs/msg/Aoa").angle_rad
+        for topic, stamp, raw in messages
+        if topic == "/groundtruth/aoa"
+    }
     nlos_tags = {i for i, (_xy, nlos) in load_truth(path).tags.items() if nlos}
     out = run_frames(rig, frames)
     errors, z = errors_against(out, truth)
@@ -198,8 +237,9 @@ def test_a_strong_mirror_is_reported_unless_resolved_as_a_later_path():
     later = check_energy(angles, np.array([10e-9, 60e-9]), heights, 0, energy, response, field, AoaParams())
     assert not later.switched and later.angle_rad == angles[0]
     assert burst_std(later, AoaParams()) > math.radians(90)
-    spurious = check_energy(angles, np.array([10e-9, 60e-9]), np.array([1.0, 0.001]), 0, energy, response, field,
-                            AoaParams())
+    spurious = check_energy(
+        angles, np.array([10e-9, 60e-9]), np.array([1.0, 0.001]), 0, energy, response, field, AoaParams()
+    )
     assert spurious.switched, "a peak below `support` is no resolved path"
 
 
@@ -212,8 +252,9 @@ def test_an_array_without_sidelobes_has_no_rival():
     a = response.steering[(lone[0] + 20) % 360]
     energy = response.energy(np.outer(a, a.conj()) + 0.01 * np.eye(3))
     pick = math.radians(lone[0])
-    d = check_energy(np.array([pick]), np.array([1e-8]), np.array([1.0]), 0, energy, response,
-                     np.ones(360, dtype=bool), AoaParams())
+    d = check_energy(
+        np.array([pick]), np.array([1e-8]), np.array([1.0]), 0, energy, response, np.ones(360, dtype=bool), AoaParams()
+    )
     assert not d.switched and d.angle_rad == pick and d.rival_power == 0.0
 
 

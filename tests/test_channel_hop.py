@@ -5,8 +5,8 @@ from __future__ import annotations
 import threading
 
 import pytest
-
 from conftest import read_bag, run_rover
+
 from rover.drivers.channel_hop import ChannelHop, HopParams
 from rover.errors import BadInput
 from rover.messages import deserialize
@@ -29,17 +29,29 @@ operators:
     proc = run_rover("run", "hop.yaml", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines() == ["iw dev wlp1s0 set channel 149 HT20", "iw dev wlp1s0 set channel 153 HT20"] * 2
-    hops = [deserialize(data, "rover_msgs/msg/ChannelHop") for _t, _s, data in read_bag(tmp_path / "out" / "results.mcap")]
+    hops = [
+        deserialize(data, "rover_msgs/msg/ChannelHop") for _t, _s, data in read_bag(tmp_path / "out" / "results.mcap")
+    ]
     assert [h.channel for h in hops] == [149, 153, 149, 153] and {h.interface for h in hops} == {"wlp1s0"}
 
 
 def test_custom_command_template_and_failures():
     ran = []
-    hop = ChannelHop(HopParams(channels=[36, 40], interface="wlan1", dwell_s=0.001, rounds=1,
-                               command="sudo iw dev {interface} set freq {channel} HT20"), runner=ran.append)
+    hop = ChannelHop(
+        HopParams(
+            channels=[36, 40],
+            interface="wlan1",
+            dwell_s=0.001,
+            rounds=1,
+            command="sudo iw dev {interface} set freq {channel} HT20",
+        ),
+        runner=ran.append,
+    )
     assert sum(1 for _ in hop.run(threading.Event())) >= 2
-    assert ran == [["sudo", "iw", "dev", "wlan1", "set", "freq", "36", "HT20"],
-                   ["sudo", "iw", "dev", "wlan1", "set", "freq", "40", "HT20"]]
+    assert ran == [
+        ["sudo", "iw", "dev", "wlan1", "set", "freq", "36", "HT20"],
+        ["sudo", "iw", "dev", "wlan1", "set", "freq", "40", "HT20"],
+    ]
     failing = ChannelHop(HopParams(channels=[36], command="false {channel}", rounds=1))
     with pytest.raises(BadInput, match="false 36 failed"):
         list(failing.run(threading.Event()))

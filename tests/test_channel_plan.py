@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, emissions, max_tags, propose
 from rover.formats.wifi import channel_freq_hz
+from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, emissions, max_tags, propose
 
 PAPER = {1: 149, 2: 153, 3: 157, 4: 161}
 
@@ -33,13 +33,16 @@ def test_harmonic_powers_follow_the_square_wave():
     assert mirror[0].freq_hz == 2 * channel_freq_hz(165) - channel_freq_hz(161)
 
 
-@pytest.mark.parametrize("excitation, channels, kind", [
-    (165, {1: 149, 2: 149}, "overlap"),
-    (165, {1: 161, 2: 165}, "excitation"),
-    (165, {1: 150, 2: 36}, "not_allowed"),
-    (64, {1: 56, 2: 72}, "mirror"),         # 56 is 40 MHz below the excitation, its mirror 40 MHz above, on 72
-    (165, {1: 161, 2: 153}, "harmonic"),
-])
+@pytest.mark.parametrize(
+    "excitation, channels, kind",
+    [
+        (165, {1: 149, 2: 149}, "overlap"),
+        (165, {1: 161, 2: 165}, "excitation"),
+        (165, {1: 150, 2: 36}, "not_allowed"),
+        (64, {1: 56, 2: 72}, "mirror"),  # 56 is 40 MHz below the excitation, its mirror 40 MHz above, on 72
+        (165, {1: 161, 2: 153}, "harmonic"),
+    ],
+)
 def test_constructed_conflicts_of_each_kind(excitation, channels, kind):
     allowed = (56, 64, 72, 36, 149, 153, 161, 165)
     found = conflicts(excitation, channels, allowed)

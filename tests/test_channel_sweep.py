@@ -6,8 +6,8 @@ import logging
 
 import numpy as np
 import pytest
-
 from conftest import T0_NS
+
 from rover.errors import BadInput
 from rover.messages import header, make
 from rover.operators.channel_sweep.operator import ChannelSweep, SweepParams
@@ -20,8 +20,12 @@ tags: [{id: 1, channel: 149}, {id: 2, channel: 153}, {id: 3, channel: 157}, {id:
 
 
 def frame(channel: int, i: int):
-    return make("rover_msgs/msg/CsiFrame", header=header(T0_NS + i), channel=channel,
-                bfee=np.array([0xBB, i % 256], dtype=np.uint8))
+    return make(
+        "rover_msgs/msg/CsiFrame",
+        header=header(T0_NS + i),
+        channel=channel,
+        bfee=np.array([0xBB, i % 256], dtype=np.uint8),
+    )
 
 
 def setup_msg(text: str = SETUP):
@@ -38,8 +42,9 @@ def run(op: ChannelSweep, items):
 def test_labels_frames_and_sends_the_schedule(caplog):
     op = ChannelSweep()
     early = frame(153, 0)
-    items = [("frames", early), ("setup", setup_msg())] + [("frames", frame(ch, i + 1)) for i, ch in
-                                                          enumerate([149, 161, 100, 157, 100])]
+    items = [("frames", early), ("setup", setup_msg())] + [
+        ("frames", frame(ch, i + 1)) for i, ch in enumerate([149, 161, 100, 157, 100])
+    ]
     with caplog.at_level(logging.WARNING):
         out = run(op, items)
     schedule = [e.msg for e in out if e.port == "schedule"]
@@ -69,8 +74,16 @@ def test_a_bad_rig_on_the_wire_is_bad_input():
 def test_live_frames_take_the_channel_tuned_at_their_stamp():
     op = ChannelSweep()
     hop = lambda ch, i: make("rover_msgs/msg/ChannelHop", header=header(T0_NS + i), interface="wlan0", channel=ch)
-    items = [("setup", setup_msg()), ("hops", hop(149, 1)), ("frames", frame(0, 2)), ("frames", frame(0, 3)),
-             ("hops", hop(157, 4)), ("frames", frame(0, 5)), ("hops", hop(100, 6)), ("frames", frame(0, 7))]
+    items = [
+        ("setup", setup_msg()),
+        ("hops", hop(149, 1)),
+        ("frames", frame(0, 2)),
+        ("frames", frame(0, 3)),
+        ("hops", hop(157, 4)),
+        ("frames", frame(0, 5)),
+        ("hops", hop(100, 6)),
+        ("frames", frame(0, 7)),
+    ]
     out = run(op, items)
     labelled = [(e.msg.channel, e.msg.tag_id) for e in out if e.port == "labelled"]
     assert labelled == [(149, 1), (149, 1), (157, 3)]

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import T0_NS, read_bag, reference_data, run_rover
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from conftest import T0_NS, read_bag, reference_data, run_rover
 from rover.datasets.convert import convert
 from rover.errors import BadInput
 from rover.messages import deserialize, header, make, serialize, typestore
@@ -79,8 +79,12 @@ def write_ros2_bag(path: Path, storage: StoragePlugin) -> None:
             received = T0_NS + i * 5_000_000 + 1_000
             writer.write(imu, received, serialize(msg))
             if i % 10 == 0:
-                frame = make("rover_msgs/msg/CsiFrame", header=header(stamp + 1, "nic"), channel=149,
-                             bfee=np.arange(5, dtype=np.uint8))
+                frame = make(
+                    "rover_msgs/msg/CsiFrame",
+                    header=header(stamp + 1, "nic"),
+                    channel=149,
+                    bfee=np.arange(5, dtype=np.uint8),
+                )
                 writer.write(csi, received + 1, serialize(frame))
 
 
@@ -120,8 +124,14 @@ def test_trimming_and_explicit_topics(tmp_path):
 def test_a_bag_without_csi_is_the_documented_error(tmp_path):
     setup = tmp_path / "setup.yaml"
     setup.write_text(SETUP)
-    proc = run_rover("convert", str(reference_data() / "bags" / "jackal_imu_odom.bag"), "--setup", str(setup),
-                     "-o", str(tmp_path / "x.mcap"))
+    proc = run_rover(
+        "convert",
+        str(reference_data() / "bags" / "jackal_imu_odom.bag"),
+        "--setup",
+        str(setup),
+        "-o",
+        str(tmp_path / "x.mcap"),
+    )
     assert proc.returncode == 2
     assert "no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: /imu/data (sensor_msgs/msg/Imu)" in proc.stderr
     assert "topics: {csi: null}" in proc.stderr
@@ -160,7 +170,7 @@ def test_truth_from_another_dataset_and_info_on_a_bag_folder(tmp_path):
 
 
 def test_custom_message_definitions_in_the_bag_are_honoured(tmp_path):
-    from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     definition = "std_msgs/Header header\nuint8 rssi\nuint16 channel\nuint8[] bfee\nstring note\n"

@@ -5,16 +5,21 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-
 from conftest import T0_NS, reference_data
+
 from rover.formats.intel5300 import read_dat, split_records
 from rover.messages import deserialize, header, make, serialize
 from rover.operators.csi_decode import CsiDecode, csi_array
 
 
 def labelled(bfee: bytes, channel: int, i: int):
-    return make("rover_msgs/msg/LabelledCsiFrame", header=header(T0_NS + i * 1_000_000), tag_id=channel % 10,
-                channel=channel, bfee=np.frombuffer(bfee, dtype=np.uint8))
+    return make(
+        "rover_msgs/msg/LabelledCsiFrame",
+        header=header(T0_NS + i * 1_000_000),
+        tag_id=channel % 10,
+        channel=channel,
+        bfee=np.frombuffer(bfee, dtype=np.uint8),
+    )
 
 
 def test_decoded_messages_equal_the_file_decoder_and_keep_their_frame(caplog):

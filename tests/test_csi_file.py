@@ -6,6 +6,7 @@ import threading
 import time
 
 from conftest import read_bag, reference_data, run_rover
+
 from rover.drivers.csi_file import CsiFile, CsiFileParams
 from rover.formats.intel5300 import split_records
 from rover.messages import deserialize
@@ -40,7 +41,7 @@ def test_following_a_growing_log(tmp_path):
     def writer():
         with path.open("ab") as f:
             for start in range(0, len(data), 333):
-                f.write(data[start:start + 333])
+                f.write(data[start : start + 333])
                 f.flush()
                 time.sleep(0.005)
 

@@ -7,10 +7,16 @@ import struct
 import threading
 
 import pytest
-
 from conftest import reference_data
-from rover.drivers.csi_netlink import (CN_IDX_IWLAGN, CsiNetlink, NetlinkFormatError, NetlinkParams, pack_datagram,
-                                       parse_datagram)
+
+from rover.drivers.csi_netlink import (
+    CN_IDX_IWLAGN,
+    CsiNetlink,
+    NetlinkFormatError,
+    NetlinkParams,
+    pack_datagram,
+    parse_datagram,
+)
 
 
 def log_records(data: bytes) -> list[bytes]:
@@ -18,7 +24,7 @@ def log_records(data: bytes) -> list[bytes]:
     out, pos = [], 0
     while pos + 2 <= len(data):
         (n,) = struct.unpack_from(">H", data, pos)
-        out.append(data[pos + 2:pos + 2 + n])
+        out.append(data[pos + 2 : pos + 2 + n])
         pos += 2 + n
     return out
 
@@ -31,8 +37,8 @@ def test_records_from_the_connector_are_published_and_logged_byte_exact(tmp_path
     for i, record in enumerate(records):
         kernel.send(pack_datagram(record, seq=i))
         if i == 3:
-            kernel.send(b"\x00" * 8)                                        # too short
-            kernel.send(pack_datagram(record)[:-5] + b"")                   # truncated
+            kernel.send(b"\x00" * 8)  # too short
+            kernel.send(pack_datagram(record)[:-5] + b"")  # truncated
     stop = threading.Event()
     frames = []
     for item in source.run(stop):

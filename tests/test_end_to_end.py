@@ -11,9 +11,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from conftest import read_bag, reference_data, run_rover
 from mcap.reader import make_reader
 
-from conftest import read_bag, reference_data, run_rover
 from rover.formats.bag import BagWriter
 from rover.messages import deserialize
 
@@ -24,12 +24,26 @@ def test_the_demo_beats_the_papers_figures(tmp_path, simulated):
     cache.mkdir()
     os.link(dataset, cache / "paper-seed1.mcap")
     out = tmp_path / "demo"
-    proc = subprocess.run([sys.executable, "-m", "rover.cli.demo", "--output", str(out)], capture_output=True, text=True,
-                          env=dict(os.environ, ROVER_CACHE=str(cache)), timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "rover.cli.demo", "--output", str(out)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, ROVER_CACHE=str(cache)),
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "paper (Zhang et al.)" in proc.stdout and "trajectory.tum" in proc.stdout
-    for name in ("results.mcap", "trajectory.tum", "trajectory_live.tum", "tags.csv", "metrics.json",
-                 "trajectory.png", "robot_error.png", "tag_error.png", "aoa_cdf.png"):
+    for name in (
+        "results.mcap",
+        "trajectory.tum",
+        "trajectory_live.tum",
+        "tags.csv",
+        "metrics.json",
+        "trajectory.png",
+        "robot_error.png",
+        "tag_error.png",
+        "aoa_cdf.png",
+    ):
         assert (out / name).is_file(), name
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["robot"]["trajectory.tum"]["unaligned"]["mean_m"] <= 0.393
@@ -67,11 +81,23 @@ def test_sample_recording_convert_run_eval(tmp_path):
     """The independent generator's recording, delivered as users deliver data."""
     sample = reference_data() / "recording_sample"
     dataset = tmp_path / "sample.mcap"
-    run_rover("convert", str(sample), "-o", str(dataset), "--truth", str(sample / "truth_robot.tum"),
-              "--tags", str(sample / "truth_tags.csv"), check=True, timeout=300)
+    run_rover(
+        "convert",
+        str(sample),
+        "-o",
+        str(dataset),
+        "--truth",
+        str(sample / "truth_robot.tum"),
+        "--tags",
+        str(sample / "truth_tags.csv"),
+        check=True,
+        timeout=300,
+    )
     run_rover("run", "--dataset", str(dataset), "--output", str(tmp_path / "run"), check=True, timeout=600)
     metrics = json.loads(run_rover("eval", str(tmp_path / "run"), "--json", check=True).stdout)
-    truth = {int(r["stamp_ns"]): math.radians(float(r["aoa_deg"])) for r in csv.DictReader((sample / "truth_csi.csv").open())}
+    truth = {
+        int(r["stamp_ns"]): math.radians(float(r["aoa_deg"])) for r in csv.DictReader((sample / "truth_csi.csv").open())
+    }
     stamps = np.array(sorted(truth))
     errors = []
     for topic, _log, data in read_bag(tmp_path / "run" / "results.mcap"):
@@ -81,9 +107,13 @@ def test_sample_recording_convert_run_eval(tmp_path):
             k = int(np.argmin(np.abs(stamps - s)))
             errors.append(abs(math.remainder(aoa.angle_rad - truth[int(stamps[k])], 2 * math.pi)))
     assert math.degrees(float(np.median(errors))) <= 10.0
-    assert metrics["aoa"]["all"]["within_3_std"] >= 0.95 and 0.3 <= metrics["aoa"]["all"]["error_over_std_median"] <= 1.2
-    truth_tags = {int(r["id"]): np.array([float(r["x"]), float(r["y"])])
-                  for r in csv.DictReader((sample / "truth_tags.csv").open())}
+    assert (
+        metrics["aoa"]["all"]["within_3_std"] >= 0.95 and 0.3 <= metrics["aoa"]["all"]["error_over_std_median"] <= 1.2
+    )
+    truth_tags = {
+        int(r["id"]): np.array([float(r["x"]), float(r["y"])])
+        for r in csv.DictReader((sample / "truth_tags.csv").open())
+    }
     last = {}
     for topic, _log, data in read_bag(tmp_path / "run" / "results.mcap"):
         if topic == "/rover/tags":

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import run_rover
+
 from rover.evaluation.metrics import Poses2D, fit_rigid, trajectory_errors
 
 T0 = 1_700_000_000.0
@@ -31,8 +31,12 @@ def square_path(n: int = 400) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def write_tum(path: Path, t: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> Path:
-    path.write_text("".join(f"{a:.9f} {x:.6f} {y:.6f} 0 0 0 {math.sin(w / 2):.9f} {math.cos(w / 2):.9f}\n"
-                            for a, (x, y), w in zip(t, xy, yaw)))
+    path.write_text(
+        "".join(
+            f"{a:.9f} {x:.6f} {y:.6f} 0 0 0 {math.sin(w / 2):.9f} {math.cos(w / 2):.9f}\n"
+            for a, (x, y), w in zip(t, xy, yaw)
+        )
+    )
     return path
 
 
@@ -54,7 +58,7 @@ def test_known_offset_and_rotation():
     errors = trajectory_errors(poses(t, xy, yaw), poses(t, turned, yaw))
     expected = np.linalg.norm(turned - xy, axis=1)
     assert errors.unaligned["mean_m"] == pytest.approx(expected.mean(), rel=1e-9)
-    assert errors.unaligned["rmse_m"] == pytest.approx(math.sqrt(np.mean(expected ** 2)), rel=1e-9)
+    assert errors.unaligned["rmse_m"] == pytest.approx(math.sqrt(np.mean(expected**2)), rel=1e-9)
     assert errors.aligned["max_m"] < 1e-9
 
 
@@ -76,8 +80,23 @@ def test_the_fit_is_rigid_never_scaled():
 def evo_stats(reference: Path, estimate: Path, *extra: str) -> dict[str, float]:
     evo = Path(sys.executable).with_name("evo_ape")
     assert evo.exists(), "evo is a test dependency (pip install -e .[test])"
-    out = subprocess.run([str(evo), "tum", str(reference), str(estimate), *extra, "--project_to_plane", "xy",
-                          "--t_max_diff", "0.01", "--no_warnings"], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [
+            str(evo),
+            "tum",
+            str(reference),
+            str(estimate),
+            *extra,
+            "--project_to_plane",
+            "xy",
+            "--t_max_diff",
+            "0.01",
+            "--no_warnings",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     return {k: float(v) for k, v in re.findall(r"^\s*(max|mean|median|rmse)\s+([0-9.eE+-]+)\s*$", out, re.M)}
 
 
@@ -92,8 +111,10 @@ def make_run(tmp_path: Path) -> tuple[Path, Path, Path]:
     run.mkdir()
     write_tum(run / "trajectory.tum", t, estimate, yaw)
     write_tum(run / "trajectory_live.tum", t[::2] + 0.004, estimate[::2] + 0.05, yaw[::2])
-    (run / "tags.csv").write_text("id,channel,x,y,z,var_x,cov_xy,var_y,observable,first_heard_s,first_localized_s,"
-                                  "last_heard_s\n1,149,2.1,3.0,0,0.01,0,0.01,1,1,2,3\n2,153,,,,1,0,1,0,1,,3\n")
+    (run / "tags.csv").write_text(
+        "id,channel,x,y,z,var_x,cov_xy,var_y,observable,first_heard_s,first_localized_s,"
+        "last_heard_s\n1,149,2.1,3.0,0,0.01,0,0.01,1,1,2,3\n2,153,,,,1,0,1,0,1,,3\n"
+    )
     tags = tmp_path / "tags_truth.csv"
     tags.write_text("id,channel,x,y,z,nlos\n1,149,2.0,3.0,0,0\n2,153,-1.0,1.0,0,1\n")
     return run, reference, tags
@@ -112,7 +133,7 @@ def test_rover_eval_agrees_with_evo(tmp_path):
         unaligned = evo_stats(reference, run / name)
         assert metrics["robot"][name]["unaligned"]["mean_m"] == pytest.approx(unaligned["mean"], abs=1e-5)
     assert metrics["tags"]["1"]["error_m"] == pytest.approx(0.1, abs=1e-6)
-    assert metrics["tags"]["1"]["sigmas"] == pytest.approx(1.0, abs=1e-5)   # 10 cm off, std 10 cm
+    assert metrics["tags"]["1"]["sigmas"] == pytest.approx(1.0, abs=1e-5)  # 10 cm off, std 10 cm
     assert metrics["tags"]["2"] == {"nlos": True, "localized": False}
     table = run_rover("eval", str(run), "--truth", str(reference), "--tags", str(tags))
     assert "trajectory_live.tum aligned" in table.stdout and "never localized" in table.stdout

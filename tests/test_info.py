@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from conftest import T0_NS, reference_data, run_rover, write_imu_dataset
+
 from rover.formats.bag import BagWriter
 from rover.messages import header, make
 
@@ -16,7 +17,9 @@ def test_json_of_a_dataset_with_csi_and_setup(tmp_path):
     with BagWriter(path, metadata={"rover.setup": {"yaml": SETUP}}) as bag:
         for i in range(30):
             stamp = T0_NS + i * 100_000_000
-            bag.write("/csi", make("rover_msgs/msg/CsiFrame", header=header(stamp), channel=149 if i % 3 else 153), stamp)
+            bag.write(
+                "/csi", make("rover_msgs/msg/CsiFrame", header=header(stamp), channel=149 if i % 3 else 153), stamp
+            )
     proc = run_rover("info", "--json", str(path))
     assert proc.returncode == 0, proc.stderr
     info = json.loads(proc.stdout)
@@ -29,7 +32,9 @@ def test_json_of_a_dataset_with_csi_and_setup(tmp_path):
 
 
 def test_the_sample_recording():
-    info = json.loads(run_rover("info", "--json", str(reference_data() / "recording_sample" / "bag" / "bag.mcap")).stdout)
+    info = json.loads(
+        run_rover("info", "--json", str(reference_data() / "recording_sample" / "bag" / "bag.mcap")).stdout
+    )
     counts = {t["name"]: t["count"] for t in info["topics"]}
     assert counts == {"/csi": 10579, "/imu/data": 22152, "/odom": 2216}
     assert sum(info["csi_packets_per_channel"].values()) == 10579

@@ -11,15 +11,37 @@ import struct
 
 import numpy as np
 import pytest
+from conftest import reference_data
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import reference_data
-from rover.formats.intel5300 import (CsiFormatError, CsiRecords, RecordHeader, StreamDecoder, concat, decode_bfee,
-                                     decode_log, encode_record, read_dat, split_records)
+from rover.formats.intel5300 import (
+    CsiFormatError,
+    CsiRecords,
+    RecordHeader,
+    StreamDecoder,
+    concat,
+    decode_bfee,
+    decode_log,
+    encode_record,
+    read_dat,
+    split_records,
+)
 
-FIELDS = ("timestamp_low", "bfee_count", "nrx", "ntx", "rssi", "noise", "agc", "antenna_sel", "perm", "rate", "csi",
-          "offset")
+FIELDS = (
+    "timestamp_low",
+    "bfee_count",
+    "nrx",
+    "ntx",
+    "rssi",
+    "noise",
+    "agc",
+    "antenna_sel",
+    "perm",
+    "rate",
+    "csi",
+    "offset",
+)
 COUNTS = ("n_skipped", "n_corrupt", "n_garbage_bytes")
 IDENTITY_SEL = 0b100100
 """antenna_sel of perm [1 2 3]"""
@@ -44,7 +66,7 @@ def records_of(data: bytes) -> list[bytes]:
     out, pos = [], 0
     while pos + 2 <= len(data):
         (n,) = struct.unpack_from(">H", data, pos)
-        out.append(data[pos:pos + 2 + n])
+        out.append(data[pos : pos + 2 + n])
         pos += 2 + n
     return out
 
@@ -89,21 +111,35 @@ def test_matches_the_csi_tools_matlab_output_exactly():
         value = {name: int(entry[name][0, 0][0, 0]) for name in entry.dtype.names if name not in ("perm", "csi")}
         nrx, ntx = value["Nrx"], value["Ntx"]
         assert (raw.nrx[i], raw.ntx[i]) == (nrx, ntx)
-        for name, mine in (("timestamp_low", raw.timestamp_low), ("bfee_count", raw.bfee_count), ("agc", raw.agc),
-                           ("rate", raw.rate), ("noise", raw.noise), ("rssi_a", raw.rssi[:, 0]),
-                           ("rssi_b", raw.rssi[:, 1]), ("rssi_c", raw.rssi[:, 2])):
+        for name, mine in (
+            ("timestamp_low", raw.timestamp_low),
+            ("bfee_count", raw.bfee_count),
+            ("agc", raw.agc),
+            ("rate", raw.rate),
+            ("noise", raw.noise),
+            ("rssi_a", raw.rssi[:, 0]),
+            ("rssi_b", raw.rssi[:, 1]),
+            ("rssi_c", raw.rssi[:, 2]),
+        ):
             assert int(mine[i]) == value[name], (i, name)
         assert raw.perm[i].tolist() == entry["perm"][0, 0][0].tolist()
         np.testing.assert_array_equal(raw.csi[i, :, :nrx, :ntx].transpose(2, 1, 0), entry["csi"][0, 0])
         assert not raw.csi[i, :, nrx:, :].any() and not raw.csi[i, :, :, ntx:].any()
-        np.testing.assert_allclose(scaled.csi[i, :, :nrx, :ntx].transpose(2, 1, 0), ref["csi_scaled"][i, 0],
-                                   rtol=0, atol=1e-9)
+        np.testing.assert_allclose(
+            scaled.csi[i, :, :nrx, :ntx].transpose(2, 1, 0), ref["csi_scaled"][i, 0], rtol=0, atol=1e-9
+        )
         assert not scaled.csi[i, :, nrx:, :].any() and not scaled.csi[i, :, :, ntx:].any()
     assert set(raw.ntx.tolist()) == {1, 2, 3} and (raw.noise == -127).all()
     assert raw.offset.tolist() == np.cumsum([0] + [len(r) for r in records_of(log.read_bytes())])[:-1].tolist()
     assert {tuple(p) for p in raw.perm.tolist()} == {(3, 2, 1), (2, 3, 1)}
-    for name, dtype in (("timestamp_low", np.uint32), ("bfee_count", np.uint16), ("noise", np.int8),
-                        ("rate", np.uint16), ("rssi", np.uint8), ("agc", np.uint8)):
+    for name, dtype in (
+        ("timestamp_low", np.uint32),
+        ("bfee_count", np.uint16),
+        ("noise", np.int8),
+        ("rate", np.uint16),
+        ("rssi", np.uint8),
+        ("agc", np.uint8),
+    ):
         assert getattr(raw, name).dtype == dtype, name
 
 
@@ -155,7 +191,7 @@ def test_every_antenna_sel_is_arranged_as_read_bf_file_does():
     out = decode_bfee(bfee, scaled=False)
     assert len(out) == len(bfee) and out.csi.shape == (len(bfee), 30, 3, 2)
     for i, want in enumerate(expected):
-        np.testing.assert_array_equal(out.csi[i, :, :want.shape[1], :want.shape[2]], want, err_msg=str(i))
+        np.testing.assert_array_equal(out.csi[i, :, : want.shape[1], : want.shape[2]], want, err_msg=str(i))
 
 
 def test_scaling_of_unusual_headers_follows_get_scaled_csi():
@@ -163,11 +199,11 @@ def test_scaling_of_unusual_headers_follows_get_scaled_csi():
     quiet = RecordHeader(0, 0, (0, 0, 0), -127, 10, IDENTITY_SEL, 0)
     loud = RecordHeader(0, 0, (50, 0, 60), -95, 20, IDENTITY_SEL, 0)
     out = decode_bfee([encode_record(quiet, csi), encode_record(loud, csi)])
-    assert not out.csi[0].any()                                     # no RSSI: no signal power
-    rss_dbm = 10 * np.log10(10 ** 5 + 10 ** 6) - 44 - 20            # rssi_b = 0 is left out
+    assert not out.csi[0].any()  # no RSSI: no signal power
+    rss_dbm = 10 * np.log10(10**5 + 10**6) - 44 - 20  # rssi_b = 0 is left out
     csi_pwr = 30 * 2 * abs(3 + 4j) ** 2
     scale = 10 ** (rss_dbm / 10) / (csi_pwr / 30)
-    factor = np.sqrt(scale / (10 ** (-95 / 10) + scale * 2 * 1))    # thermal + quantization noise
+    factor = np.sqrt(scale / (10 ** (-95 / 10) + scale * 2 * 1))  # thermal + quantization noise
     np.testing.assert_allclose(out.csi[1, :, :2, 0], csi[:, :, 0] * factor, rtol=1e-12)
 
 
@@ -187,8 +223,19 @@ def test_decode_bfee_judges_each_input_on_its_own(small):
 
     bad_len = bytearray(bodies[2])
     struct.pack_into("<H", bad_len, 1 + 16, 100)
-    damaged = [b"", b"\xc1abc", bodies[0], bodies[1][:50], bodies[1] + b"\x00", bytes(bad_len), b"\xbb",
-               bodies[3], bodies[4] * 400, b"\x00" * 70_000, bodies[5]]
+    damaged = [
+        b"",
+        b"\xc1abc",
+        bodies[0],
+        bodies[1][:50],
+        bodies[1] + b"\x00",
+        bytes(bad_len),
+        b"\xbb",
+        bodies[3],
+        bodies[4] * 400,
+        b"\x00" * 70_000,
+        bodies[5],
+    ]
     out = decode_bfee(damaged, scaled=False)
     assert out.offset.tolist() == [2, 7, 10]
     assert out.bfee_count.tolist() == decode_log(small, scaled=False).bfee_count[[0, 3, 5]].tolist()
@@ -213,7 +260,7 @@ def test_streaming_equals_whole_file_at_random_split_points(sample):
 
 def test_undecoded_stream_records_equal_split_records(sample):
     dec = StreamDecoder()
-    got = [r for start in range(0, len(sample), 1000) for r in dec.records(sample[start:start + 1000])]
+    got = [r for start in range(0, len(sample), 1000) for r in dec.records(sample[start : start + 1000])]
     assert got + dec.records(b"", final=True) == split_records(sample)[0]
 
 
@@ -253,10 +300,10 @@ def test_a_record_cut_short_inside_a_file_loses_no_other(tmp_path, small):
         path = tmp_path / f"short{keep}.dat"
         path.write_bytes(b"".join(recs[:3]) + recs[3][:keep] + b"".join(recs[4:]))
         out = read_dat(path)
-        if keep <= len(recs[3]) - 23:       # a whole header of the next record inside: the cut one is refused
+        if keep <= len(recs[3]) - 23:  # a whole header of the next record inside: the cut one is refused
             assert out.bfee_count.tolist() == whole[:3] + whole[4:], keep
             assert out.n_corrupt == (1 if keep >= 23 else 0), keep
-        else:                               # cut by less than a header: it cannot be told, both are kept
+        else:  # cut by less than a header: it cannot be told, both are kept
             assert out.bfee_count.tolist() == whole, keep
         assert_same(streamed(path.read_bytes(), [len(b"".join(recs[:3])) + keep // 2]), out)
 
@@ -264,8 +311,9 @@ def test_a_record_cut_short_inside_a_file_loses_no_other(tmp_path, small):
 def test_other_codes_are_skipped_and_counted(tmp_path, small):
     recs = records_of(small)
     path = tmp_path / "with_c1.dat"
-    path.write_bytes(other_record(b"frame!") + b"".join(recs[:5]) + other_record(b"x" * 300)
-                     + b"".join(recs[5:]) + other_record(b""))
+    path.write_bytes(
+        other_record(b"frame!") + b"".join(recs[:5]) + other_record(b"x" * 300) + b"".join(recs[5:]) + other_record(b"")
+    )
     out = read_dat(path)
     assert_same(out, streamed(path.read_bytes(), [7, 500, 2000]))
     assert out.bfee_count.tolist() == decode_log(small).bfee_count.tolist()
@@ -275,9 +323,9 @@ def test_other_codes_are_skipped_and_counted(tmp_path, small):
 def test_a_len_that_disagrees_is_corrupt_not_decoded(tmp_path, small):
     recs = [bytearray(r) for r in records_of(small)]
     bad = recs[3]
-    struct.pack_into("<H", bad, 2 + 1 + 16, 100)              # len no longer matches Nrx/Ntx...
-    struct.pack_into(">H", bad, 0, 1 + 20 + 100)              # ...though the framing is consistent
-    del bad[2 + 1 + 20 + 100:]
+    struct.pack_into("<H", bad, 2 + 1 + 16, 100)  # len no longer matches Nrx/Ntx...
+    struct.pack_into(">H", bad, 0, 1 + 20 + 100)  # ...though the framing is consistent
+    del bad[2 + 1 + 20 + 100 :]
     path = tmp_path / "bad_len.dat"
     path.write_bytes(b"".join(bytes(r) for r in recs))
     out = read_dat(path)
@@ -326,7 +374,7 @@ def test_arbitrary_bytes_never_raise_and_stream_as_whole(data, cuts):
 
 def junk_piece(recs: list[bytes]) -> st.SearchStrategy[bytes]:
     """Damage found in real logs: random bytes, a record cut short, a record of another code."""
-    cut_record = st.tuples(st.sampled_from(recs), st.integers(0, 600)).map(lambda rc: rc[0][:rc[1]])
+    cut_record = st.tuples(st.sampled_from(recs), st.integers(0, 600)).map(lambda rc: rc[0][: rc[1]])
     return st.one_of(st.binary(max_size=300), cut_record, st.binary(max_size=40).map(other_record))
 
 
@@ -351,8 +399,15 @@ def test_encoding_is_the_exact_inverse(small):
     raw = decode_log(small, scaled=False)
     for i, record in enumerate(records_of(small)):
         n, t = int(raw.nrx[i]), int(raw.ntx[i])
-        head = RecordHeader(int(raw.timestamp_low[i]), int(raw.bfee_count[i]), tuple(int(v) for v in raw.rssi[i]),
-                            int(raw.noise[i]), int(raw.agc[i]), int(raw.antenna_sel[i]), int(raw.rate[i]))
+        head = RecordHeader(
+            int(raw.timestamp_low[i]),
+            int(raw.bfee_count[i]),
+            tuple(int(v) for v in raw.rssi[i]),
+            int(raw.noise[i]),
+            int(raw.agc[i]),
+            int(raw.antenna_sel[i]),
+            int(raw.rate[i]),
+        )
         assert encode_record(head, raw.csi[i, :, :n, :t]) == record[2:]
     rng = np.random.default_rng(5)
     for sel in (0b100100, 0b011000, 0b001001, 0b010010, 0b000110, 0b100001):

@@ -6,18 +6,35 @@ import numpy as np
 import pytest
 
 from rover.errors import BadInput
-from rover.messages import (Raw, cdr_stamp_ns, deserialize, has_header, header, make, message_class, ros2_msgdef,
-                            serialize, stamp_ns)
+from rover.messages import (
+    Raw,
+    cdr_stamp_ns,
+    deserialize,
+    has_header,
+    header,
+    make,
+    message_class,
+    ros2_msgdef,
+    serialize,
+    stamp_ns,
+)
 
 
 def test_csiframe_is_exactly_the_design():
     assert "uint16 channel" in ros2_msgdef("rover_msgs/msg/CsiFrame")
-    frame = make("rover_msgs/msg/CsiFrame", header=header(1_234_567_890_123, "nic"), channel=149,
-                 bfee=np.arange(10, dtype=np.uint8))
+    frame = make(
+        "rover_msgs/msg/CsiFrame",
+        header=header(1_234_567_890_123, "nic"),
+        channel=149,
+        bfee=np.arange(10, dtype=np.uint8),
+    )
     back = deserialize(serialize(frame), "rover_msgs/msg/CsiFrame")
     assert back.channel == 149 and back.bfee.tolist() == list(range(10)) and back.header.frame_id == "nic"
-    assert [name for name, _ in message_class("rover_msgs/msg/CsiFrame").__dataclass_fields__.items()
-            if not name.startswith("__")] == ["header", "channel", "bfee"]
+    assert [
+        name
+        for name, _ in message_class("rover_msgs/msg/CsiFrame").__dataclass_fields__.items()
+        if not name.startswith("__")
+    ] == ["header", "channel", "bfee"]
 
 
 def test_stamp_from_cdr_bytes_equals_the_decoded_header():

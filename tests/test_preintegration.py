@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 import pytest
-
 from conftest import T0_NS, read_bag
+
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
 from rover.messages import deserialize, header, make
@@ -41,9 +41,12 @@ def feed(op: Preintegration, imu, epoch_ns: int = EPOCH_NS, mount: np.ndarray | 
         if mount is not None:
             w = mount.T @ [msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z]
             a = mount.T @ [msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z]
-            msg = make("sensor_msgs/msg/Imu", header=msg.header,
-                       angular_velocity=make("geometry_msgs/msg/Vector3", x=w[0], y=w[1], z=w[2]),
-                       linear_acceleration=make("geometry_msgs/msg/Vector3", x=a[0], y=a[1], z=a[2]))
+            msg = make(
+                "sensor_msgs/msg/Imu",
+                header=msg.header,
+                angular_velocity=make("geometry_msgs/msg/Vector3", x=w[0], y=w[1], z=w[2]),
+                linear_acceleration=make("geometry_msgs/msg/Vector3", x=a[0], y=a[1], z=a[2]),
+            )
         out += list(op.on_input("imu", msg, stamp))
     return [e.msg for e in out] + [e.msg for e in op.on_end()]
 
@@ -86,8 +89,10 @@ def test_the_mounting_rotation_from_the_setup(run):
     imu, poses = run
     mount = rpy_matrix(0.0, 0.0, math.radians(90))
     op = Preintegration()
-    setup = ("receiver: {antenna_positions_m: [[0, 0], [0.02, 0]]}\nexcitation: {channel: 165}\ntags: []\n"
-             "imu: {rotation_rpy_deg: [0, 0, 90]}\n")
+    setup = (
+        "receiver: {antenna_positions_m: [[0, 0], [0.02, 0]]}\nexcitation: {channel: 165}\ntags: []\n"
+        "imu: {rotation_rpy_deg: [0, 0, 90]}\n"
+    )
     list(op.on_input("setup", make("rover_msgs/msg/RigSetup", setup_yaml=setup), 0))
     errors, yaw_errors = check_against_truth(feed(op, imu, mount=mount), poses)
     assert np.median(errors) < 0.01 and math.degrees(yaw_errors.max()) < 2.0

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from conftest import T0_NS, read_bag
 from rosbags.highlevel import AnyReader
 
-from conftest import T0_NS, read_bag
 from rover.drivers.recorder import Recorder, RecorderParams
 from rover.messages import Raw, header, make, serialize
 
@@ -21,7 +21,9 @@ def test_writes_a_ros2_bag_other_tools_read(tmp_path):
     assert not (tmp_path / "results.mcap").exists()
     rec.close()
     path = tmp_path / "results.mcap"
-    assert [(t, s) for t, s, _ in read_bag(path)] == [("/imu/data", T0_NS + i) for i in range(5)] + [("/tags", T0_NS + 9)]
+    assert [(t, s) for t, s, _ in read_bag(path)] == [("/imu/data", T0_NS + i) for i in range(5)] + [
+        ("/tags", T0_NS + 9)
+    ]
     with AnyReader([path]) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         assert topics == {"/imu/data": "sensor_msgs/msg/Imu", "/tags": "std_msgs/msg/String"}

@@ -6,11 +6,11 @@ import threading
 import time
 
 import pytest
-
 from conftest import T0_NS, read_bag, write_imu_dataset
-from rover.formats.bag import BagWriter
+
 from rover.drivers.replay import DatasetReplay, ReplayParams
 from rover.errors import BadInput
+from rover.formats.bag import BagWriter
 from rover.messages import Raw, header, make
 from rover.operator import Emit
 

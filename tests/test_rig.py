@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import reference_data, run_rover
+
 from rover.errors import SpecError
 from rover.formats.rig import load_rig, rig_from_text
 
@@ -52,5 +52,8 @@ def test_cli_check_reports_the_plans_conflicts(tmp_path):
     setup.write_text(SETUP.replace("{id: 2, shift_hz: 60.0e+6}", "{id: 2, channel: 153}, {id: 4, channel: 161}"))
     proc = run_rover("check", str(setup))
     assert proc.returncode == 0
-    assert "ok: rig with 3 antennas, excitation channel 165 (at most 15 tags at once; channel 36 would allow 17), 3 tags" in proc.stdout
+    assert (
+        "ok: rig with 3 antennas, excitation channel 165 (at most 15 tags at once; channel 36 would allow 17), 3 tags"
+        in proc.stdout
+    )
     assert "tag 4's 3rd harmonic (5765 MHz, -9.5 dB) lands on channel 153, tag 2's" in proc.stderr

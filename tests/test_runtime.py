@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 import zenoh
-
 from conftest import free_port, popen_rover, read_bag, run_rover, write_imu_dataset
-from rover.messages import cdr_stamp_ns, make, header, serialize
+
+from rover.messages import cdr_stamp_ns, header, make, serialize
 from rover.transport import codec
 
 TOY = """\
@@ -48,8 +48,16 @@ def test_three_hosts_give_the_same_bytes_as_one_process(tmp_path, dataset):
     single = run_rover("run", str(pipeline), "--dataset", str(dataset), "--output", str(tmp_path / "one"))
     assert single.returncode == 0, single.stderr
     port = str(free_port())
-    results = run_hosts(pipeline, ["c", "b", "a"], "--dataset", str(dataset), "--output", str(tmp_path / "three"),
-                        "--set", f"port={port}")
+    results = run_hosts(
+        pipeline,
+        ["c", "b", "a"],
+        "--dataset",
+        str(dataset),
+        "--output",
+        str(tmp_path / "three"),
+        "--set",
+        f"port={port}",
+    )
     assert all(rc == 0 for rc, _ in results), results
     one = (tmp_path / "one" / "results.mcap").read_bytes()
     three = (tmp_path / "three" / "results.mcap").read_bytes()
@@ -70,7 +78,7 @@ hosts:
   laptop: {{connect: ["tcp/127.0.0.1:{port}"]}}
 operators:
   replay: {{uses: dataset_replay, host: robot, params: {{path: "{dataset}"}}}}
-  record: {{uses: recorder, host: laptop, inputs: {{imu: replay/imu}}, params: {{out: "{tmp_path / 'out'}"}}}}
+  record: {{uses: recorder, host: laptop, inputs: {{imu: replay/imu}}, params: {{out: "{tmp_path / "out"}"}}}}
 """)
     results = run_hosts(pipeline, ["laptop", "robot"], timeout=300)
     assert all(rc == 0 for rc, _ in results), results
@@ -123,8 +131,19 @@ def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_p
     pipeline = tmp_path / "live.yaml"
     pipeline.write_text(LIVE)
     port = free_port()
-    proc = popen_rover("-v", "run", str(pipeline), "--host", "robot", "--output", str(tmp_path / "out"),
-                       "--set", "count=150", "--set", f"port={port}")
+    proc = popen_rover(
+        "-v",
+        "run",
+        str(pipeline),
+        "--host",
+        "robot",
+        "--output",
+        str(tmp_path / "out"),
+        "--set",
+        "count=150",
+        "--set",
+        f"port={port}",
+    )
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
@@ -135,10 +154,18 @@ def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_p
         good = serialize(make("sensor_msgs/msg/Imu", header=header(0)))
         for _ in range(5):
             foreign.put(key, b"\x00garbage\xff" * 7)
-            foreign.put(key, b"\x00\x01\x00\x00" + b"\xff" * 3, encoding=codec.encoding("sensor_msgs/msg/Imu"),
-                        attachment=codec.attachment(codec.Kind.DATA, 0, 0))
-            foreign.put(key, good, encoding=codec.encoding("std_msgs/msg/String"),
-                        attachment=codec.attachment(codec.Kind.DATA, 0, 0))
+            foreign.put(
+                key,
+                b"\x00\x01\x00\x00" + b"\xff" * 3,
+                encoding=codec.encoding("sensor_msgs/msg/Imu"),
+                attachment=codec.attachment(codec.Kind.DATA, 0, 0),
+            )
+            foreign.put(
+                key,
+                good,
+                encoding=codec.encoding("std_msgs/msg/String"),
+                attachment=codec.attachment(codec.Kind.DATA, 0, 0),
+            )
             time.sleep(0.05)
         time.sleep(0.5)
     _out, err = proc.communicate(timeout=30)
@@ -156,7 +183,7 @@ name: boom
 operators:
   replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}
   boom:   {{uses: toyops.Explode, inputs: {{imu: replay/imu}}}}
-  record: {{uses: recorder, inputs: {{imu: boom/imu}}, params: {{out: "{tmp_path / 'out'}"}}}}
+  record: {{uses: recorder, inputs: {{imu: boom/imu}}, params: {{out: "{tmp_path / "out"}"}}}}
 """)
     proc = run_rover("run", str(pipeline), timeout=60)
     assert proc.returncode == 1
@@ -173,17 +200,29 @@ def test_bad_inputs_are_one_line_and_status_2(tmp_path, dataset):
     nothing = run_rover("run", "--output", str(tmp_path / "o"), cwd=tmp_path)
     assert nothing.returncode == 2 and "no dataset given" in nothing.stderr
     port = free_port()
-    unreachable = run_rover("run", str(pipeline), "--host", "b", "--dataset", str(dataset), "--set", f"port={port}",
-                            timeout=60, cwd=tmp_path)
+    unreachable = run_rover(
+        "run",
+        str(pipeline),
+        "--host",
+        "b",
+        "--dataset",
+        str(dataset),
+        "--set",
+        f"port={port}",
+        timeout=60,
+        cwd=tmp_path,
+    )
     assert unreachable.returncode == 2
     assert f"cannot reach tcp/127.0.0.1:{port}" in unreachable.stderr
     import socket
+
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         taken = busy.getsockname()[1]
-        in_use = run_rover("run", str(pipeline), "--host", "a", "--dataset", str(dataset), "--set", f"port={taken}",
-                           cwd=tmp_path)
+        in_use = run_rover(
+            "run", str(pipeline), "--host", "a", "--dataset", str(dataset), "--set", f"port={taken}", cwd=tmp_path
+        )
     assert in_use.returncode == 2 and f"cannot listen on tcp/127.0.0.1:{taken}" in in_use.stderr
     for proc in (missing, nothing, unreachable, in_use):
         assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
@@ -216,8 +255,9 @@ operators:
     try:
         time.sleep(1.0)
         with zenoh.open(conf) as watcher:
-            sub = watcher.declare_subscriber("rover/silent/merge/out",
-                                             lambda s: seen.append(codec.read_attachment(s.attachment.to_bytes())))
+            sub = watcher.declare_subscriber(
+                "rover/silent/merge/out", lambda s: seen.append(codec.read_attachment(s.attachment.to_bytes()))
+            )
             time.sleep(2.0)
             live = [k for k, _s, _w in seen if k == codec.Kind.DATA]
             sub.undeclare()
@@ -237,8 +277,12 @@ def test_the_default_pipeline_on_three_hosts_gives_the_same_results(tmp_path):
     single = run_rover("run", "--dataset", str(dataset), "--output", str(tmp_path / "one"), timeout=300)
     assert single.returncode == 0, single.stderr
     port = free_port()
-    procs = [popen_rover("run", "--host", h, "--dataset", str(dataset), "--output", str(tmp_path / "three"),
-                         "--set", f"port={port}") for h in ("laptop", "base", "nuc")]
+    procs = [
+        popen_rover(
+            "run", "--host", h, "--dataset", str(dataset), "--output", str(tmp_path / "three"), "--set", f"port={port}"
+        )
+        for h in ("laptop", "base", "nuc")
+    ]
     for proc in procs:
         _out, err = proc.communicate(timeout=300)
         assert proc.returncode == 0, err
@@ -248,7 +292,15 @@ def test_the_default_pipeline_on_three_hosts_gives_the_same_results(tmp_path):
     assert [m for m in one if m[0] != timing] == [m for m in three if m[0] != timing]
     assert [m[:2] for m in one if m[0] == timing] == [m[:2] for m in three if m[0] == timing]
     topics = {t for t, _s, _d in one}
-    assert topics == {"/rover/aoa", "/rover/preintegration", "/rover/sweep", "/rover/pose", "/rover/trajectory",
-                      "/rover/path", "/rover/tags", timing}
+    assert topics == {
+        "/rover/aoa",
+        "/rover/preintegration",
+        "/rover/sweep",
+        "/rover/pose",
+        "/rover/trajectory",
+        "/rover/path",
+        "/rover/tags",
+        timing,
+    }
     for name in ("trajectory.tum", "trajectory_live.tum", "tags.csv", "metrics.json"):
         assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "three" / name).read_bytes(), name

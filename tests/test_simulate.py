@@ -7,15 +7,15 @@ import math
 
 import numpy as np
 import pytest
-
 from conftest import read_bag, run_rover
+
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import antenna_positions, simulate
-from rover.formats.intel5300 import RecordHeader, decode_bfee, encode_record
 from rover.errors import BadInput, SpecError
-from rover.messages import deserialize
+from rover.formats.intel5300 import RecordHeader, decode_bfee, encode_record
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
+from rover.messages import deserialize
 
 SHORT = {"trajectory.laps": "1"}
 
@@ -52,8 +52,17 @@ def test_packed_records_decode_back_within_quantization():
     rng = np.random.default_rng(0)
     scenario = load_scenario("paper")
     antennas = antenna_positions(scenario)
-    csi, _ = backscatter_csi(np.array([4.5, 4.6]), np.array([2.5, 0.25]), rng.uniform([1, 1], [8, 4], (50, 2)),
-                             rng.uniform(-3, 3, 50), antennas, 165, 149, (9, 5), 0.5)
+    csi, _ = backscatter_csi(
+        np.array([4.5, 4.6]),
+        np.array([2.5, 0.25]),
+        rng.uniform([1, 1], [8, 4], (50, 2)),
+        rng.uniform(-3, 3, 50),
+        antennas,
+        165,
+        149,
+        (9, 5),
+        0.5,
+    )
     peak = rng.uniform(40, 90, 50)
     imp = Impairments(np.zeros(50), np.zeros(50), np.full(50, 200.0), peak, np.zeros(3))
     quantized = impair(csi, imp, rng)
@@ -111,13 +120,21 @@ def test_cli_round_trip_simulate_info_replay(tmp_path):
     proc = run_rover("simulate", "--seed", "4", "--set", "trajectory.laps=1", "-o", str(out))
     assert proc.returncode == 0, proc.stderr
     info = json.loads(run_rover("info", "--json", str(out)).stdout)
-    assert info["simulation"]["scenario"] == "paper" and set(info["simulation"]["direct_to_multipath_db"]) <= {"1", "2", "3", "4"}
+    assert info["simulation"]["scenario"] == "paper" and set(info["simulation"]["direct_to_multipath_db"]) <= {
+        "1",
+        "2",
+        "3",
+        "4",
+    }
     csi = next(t["count"] for t in info["topics"] if t["name"] == "/csi")
     run = run_rover("run", "--dataset", str(out), "--output", str(tmp_path / "run"), "-v")
     assert run.returncode == 0, run.stderr
     assert f"decode: in frames={csi}; out csi={csi}" in run.stderr, "every simulated record decodes"
-    aoas = [deserialize(d, "rover_msgs/msg/Aoa") for t, _s, d in read_bag(tmp_path / "run" / "results.mcap")
-            if t == "/rover/aoa"]
+    aoas = [
+        deserialize(d, "rover_msgs/msg/Aoa")
+        for t, _s, d in read_bag(tmp_path / "run" / "results.mcap")
+        if t == "/rover/aoa"
+    ]
     assert len(aoas) > 300 and {a.tag_id for a in aoas} <= {1, 2, 3, 4}
     assert run_rover("simulate", "-o", str(out)).returncode == 2, "an existing output is kept"
 

@@ -6,10 +6,10 @@ import logging
 import math
 
 import numpy as np
+from slam_scenes import EXACT_COVARIANCE, angles, edge, scene
 
 from rover.messages import header, make
 from rover.operators.slam.operator import Slam, SlamParams
-from slam_scenes import EXACT_COVARIANCE, angles, edge, scene
 
 START_NS = 1_000_000_000
 
@@ -21,10 +21,18 @@ def preintegration(sc, k: int):
     cov[[0, 1, 2, 5, 8], [0, 1, 2, 5, 8]] = 1e-10
     vec = lambda v: make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=0.0)
     quat = lambda yaw: make("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
-    return make("rover_msgs/msg/Preintegration", header=header(stamp(sc, k), "world"),
-                start=header(stamp(sc, k - 1)).stamp, dt=e.dt, orientation_start=quat(sc.yaw[k - 1]),
-                orientation=quat(sc.yaw[k]), delta_velocity=vec(e.delta[0:2]), delta_position=vec(e.delta[2:4]),
-                covariance=cov.ravel(), samples=20)
+    return make(
+        "rover_msgs/msg/Preintegration",
+        header=header(stamp(sc, k), "world"),
+        start=header(stamp(sc, k - 1)).stamp,
+        dt=e.dt,
+        orientation_start=quat(sc.yaw[k - 1]),
+        orientation=quat(sc.yaw[k]),
+        delta_velocity=vec(e.delta[0:2]),
+        delta_position=vec(e.delta[2:4]),
+        covariance=cov.ravel(),
+        samples=20,
+    )
 
 
 def stamp(sc, k: int) -> int:
@@ -35,8 +43,15 @@ def feed(op: Slam, sc, measured, with_aoa: bool = True):
     out = []
     for k, (tag, angle) in enumerate(measured):
         if with_aoa:
-            aoa = make("rover_msgs/msg/Aoa", header=header(stamp(sc, k), "base_link"), tag_id=tag + 1,
-                       channel=149 + 4 * tag, angle_rad=angle, std_rad=math.radians(1.0), packets=7)
+            aoa = make(
+                "rover_msgs/msg/Aoa",
+                header=header(stamp(sc, k), "base_link"),
+                tag_id=tag + 1,
+                channel=149 + 4 * tag,
+                angle_rad=angle,
+                std_rad=math.radians(1.0),
+                packets=7,
+            )
             out += list(op.on_input("aoa", aoa, stamp(sc, k)))
         if k:
             out += list(op.on_input("odometry", preintegration(sc, k), stamp(sc, k)))
@@ -45,14 +60,14 @@ def feed(op: Slam, sc, measured, with_aoa: bool = True):
 
 def test_outputs_per_epoch_and_tags_localized():
     sc = scene(seconds=8.0)
-    out = feed(Slam(SlamParams(window=20, aoa_std_scale=1.0)), sc, angles(sc))   # exact bearings, nothing shared
+    out = feed(Slam(SlamParams(window=20, aoa_std_scale=1.0)), sc, angles(sc))  # exact bearings, nothing shared
     by_port = {}
     for e in out:
         by_port.setdefault(e.port, []).append(e)
     n = len(sc.t)
     assert len(by_port["pose"]) == n - 1 and len(by_port["diagnostics"]) == n - 1
     assert len(by_port["trajectory"]) == n
-    stamps = [p.msg.header.stamp.sec * 10 ** 9 + p.msg.header.stamp.nanosec for p in by_port["trajectory"]]
+    stamps = [p.msg.header.stamp.sec * 10**9 + p.msg.header.stamp.nanosec for p in by_port["trajectory"]]
     assert stamps == sorted(stamps) and stamps[0] == START_NS
     assert [e.stamp_ns for e in out] == sorted(e.stamp_ns for e in out)
     final = by_port["tags"][-1].msg.tags

@@ -5,9 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from slam_scenes import angles, estimate, scene, tag_errors
 
 from rover.operators.slam.sliding_window import WindowSettings
-from slam_scenes import angles, estimate, scene, tag_errors
 
 
 def test_noise_free_matches_truth_to_millimetres():
@@ -53,8 +53,9 @@ def test_ranges_are_not_biased_short_at_10_degrees():
     ratios = []
     for seed in range(3):
         sc = scene(seconds=15.0)
-        w, final = estimate(sc, WindowSettings(window=30), angles(sc, noise_deg=10.0, seed=seed), std_deg=10.0,
-                            update_every=2)
+        w, final = estimate(
+            sc, WindowSettings(window=30), angles(sc, noise_deg=10.0, seed=seed), std_deg=10.0, update_every=2
+        )
         order = [w.tag_ids.index(i + 1) for i in range(len(sc.tags))]
         tags = w.tag_positions()[order]
         est = np.linalg.norm(tags[None] - final[:, None], axis=2).mean(axis=0)

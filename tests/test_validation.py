@@ -6,10 +6,10 @@ import textwrap
 from pathlib import Path
 
 import pytest
-
 from conftest import ROOT, run_rover
-from rover.errors import SpecError
+
 from rover.cli.registry import BUILTINS
+from rover.errors import SpecError
 from rover.pipeline.validation import load_and_check
 
 GOOD = """\
@@ -114,8 +114,13 @@ def test_wire_to_unknown_operator(tmp_path):
 
 def test_message_type_mismatch(tmp_path):
     text = GOOD.replace("odom: replay/odom", "odom: replay/imu")
-    has(problems(tmp_path, text), at(text, "replay/imu", 1),
-        "type mismatch", "replay/imu sends sensor_msgs/msg/Imu", "takes nav_msgs/msg/Odometry")
+    has(
+        problems(tmp_path, text),
+        at(text, "replay/imu", 1),
+        "type mismatch",
+        "replay/imu sends sensor_msgs/msg/Imu",
+        "takes nav_msgs/msg/Odometry",
+    )
 
 
 def test_unwired_required_input(tmp_path):
@@ -124,7 +129,10 @@ def test_unwired_required_input(tmp_path):
 
 
 def test_cycle(tmp_path):
-    text = GOOD + "  a: {uses: toyops.Passthrough, inputs: {imu: b/imu}}\n  b: {uses: toyops.Passthrough, inputs: {imu: a/imu}}\n"
+    text = (
+        GOOD
+        + "  a: {uses: toyops.Passthrough, inputs: {imu: b/imu}}\n  b: {uses: toyops.Passthrough, inputs: {imu: a/imu}}\n"
+    )
     has(problems(tmp_path, text), at(text, "a/imu"), "cycle: a <- b <- a")
 
 
@@ -134,7 +142,10 @@ def test_source_with_inputs(tmp_path):
 
 
 def test_undeclared_host(tmp_path):
-    text = GOOD.replace("operators:", "hosts:\n  nuc: {listen: [tcp/127.0.0.1:7447]}\n  laptop: {connect: [tcp/127.0.0.1:7447]}\noperators:")
+    text = GOOD.replace(
+        "operators:",
+        "hosts:\n  nuc: {listen: [tcp/127.0.0.1:7447]}\n  laptop: {connect: [tcp/127.0.0.1:7447]}\noperators:",
+    )
     text = text.replace("uses: dataset_replay,", "uses: dataset_replay, host: nuc,")
     text = text.replace("uses: toyops.Heading,", "uses: toyops.Heading, host: laptop,")
     text = text.replace("uses: recorder,", "uses: recorder, host: laptp,")
@@ -142,8 +153,11 @@ def test_undeclared_host(tmp_path):
 
 
 def test_host_without_a_path(tmp_path):
-    text = GOOD.replace("operators:", "hosts:\n  nuc: {listen: [tcp/127.0.0.1:7447]}\n  base: {}\n"
-                        "  laptop: {connect: [tcp/127.0.0.1:7448]}\n  far: {listen: [tcp/127.0.0.1:7449]}\noperators:")
+    text = GOOD.replace(
+        "operators:",
+        "hosts:\n  nuc: {listen: [tcp/127.0.0.1:7447]}\n  base: {}\n"
+        "  laptop: {connect: [tcp/127.0.0.1:7448]}\n  far: {listen: [tcp/127.0.0.1:7449]}\noperators:",
+    )
     for op, host in (("replay", "nuc"), ("heading", "base"), ("record", "laptop")):
         text = text.replace(f"  {op}: {{", f"  {op}: {{host: {host}, ")
     found = problems(tmp_path, text)

@@ -11,7 +11,6 @@ from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out, Source, Watermark
 
 
-
 @dataclass(frozen=True)
 class HeadingParams:
     gain: float = 1.0

@@ -22,7 +22,7 @@ RUN_STEP = 2
 """Subcarrier index step inside an evenly spaced run (625 kHz at 20 MHz)."""
 NOISE_FACTOR = 10.0
 """An eigenvalue counts as a path when it is this many times the noise level (median of the lower half)..."""
-PATH_FLOOR = 10 ** -2.5
+PATH_FLOOR = 10**-2.5
 CHUNK_PACKETS = 64
 """...and within 25 dB of the strongest: weaker ones are model mismatch (the antenna phases change a
 little across the 20 MHz band), not paths."""
@@ -38,23 +38,31 @@ def even_runs(indices: np.ndarray) -> list[np.ndarray]:
 class Peaks:
     """Up to `k` spectrum peaks per packet: angle (rad, robot frame), delay (s), normalized height."""
 
-    angle: np.ndarray   # (P, k)
-    delay: np.ndarray   # (P, k)
+    angle: np.ndarray  # (P, k)
+    delay: np.ndarray  # (P, k)
     height: np.ndarray  # (P, k), 0 where there is no peak
 
 
 class JointMusic:
     """Estimator for one array and one channel: build once, apply to many packets."""
 
-    def __init__(self, antennas_m: np.ndarray, channel: int, window: int = 8, angle_step_deg: float = 4.0,
-                 delay_range_s: tuple[float, float] = (-100e-9, 200e-9), delay_step_s: float = 10e-9,
-                 max_paths: int = 4, refine_steps: int = 8):
+    def __init__(
+        self,
+        antennas_m: np.ndarray,
+        channel: int,
+        window: int = 8,
+        angle_step_deg: float = 4.0,
+        delay_range_s: tuple[float, float] = (-100e-9, 200e-9),
+        delay_step_s: float = 10e-9,
+        max_paths: int = 4,
+        refine_steps: int = 8,
+    ):
         self.antennas = np.asarray(antennas_m, dtype=np.float64)
         self.channel = channel
         self.center_hz = channel_freq_hz(channel)
         self.offsets_hz = SUBCARRIERS_20MHZ * SUBCARRIER_SPACING_HZ
         runs = even_runs(SUBCARRIERS_20MHZ)
-        self.windows = np.array([run[i:i + window] for run in runs for i in range(len(run) - window + 1)])
+        self.windows = np.array([run[i : i + window] for run in runs for i in range(len(run) - window + 1)])
         if len(self.windows) == 0:
             raise ValueError(f"smoothing window {window} is longer than every evenly spaced run of subcarriers")
         self.window = window
@@ -62,8 +70,8 @@ class JointMusic:
         self.max_paths = max_paths
         self.angles = np.radians(np.arange(-180.0, 180.0, angle_step_deg))
         self.delays = np.arange(delay_range_s[0], delay_range_s[1] + delay_step_s / 2, delay_step_s)
-        self.angle_manifold = self.steer_angle(self.angles)        # (Na, M)
-        self.delay_manifold = self.steer_delay(self.delays)        # (Nd, L)
+        self.angle_manifold = self.steer_angle(self.angles)  # (Na, M)
+        self.delay_manifold = self.steer_delay(self.delays)  # (Nd, L)
         self.refine_offsets = np.linspace(-1.0, 1.0, 2 * refine_steps + 1)
 
     def steer_angle(self, angles: np.ndarray) -> np.ndarray:
@@ -90,67 +98,70 @@ class JointMusic:
 
     def covariance(self, clean: np.ndarray) -> np.ndarray:
         """Subcarrier-smoothed covariance per packet, (P, M*L, M*L), element order antenna-major."""
-        snapshots = clean[:, self.windows, :]                        # (P, W, L, M)
+        snapshots = clean[:, self.windows, :]  # (P, W, L, M)
         x = snapshots.transpose(0, 1, 3, 2).reshape(clean.shape[0], len(self.windows), -1)
         return np.einsum("pwi,pwj->pij", x, x.conj()) / len(self.windows)
 
     def spectrum(self, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """MUSIC pseudo-spectrum over the (angle, delay) grid, (P, Na, Nd), and the number of paths found
         above the noise (0: noise only; the spectrum then uses one)."""
-        values, vectors = np.linalg.eigh(cov)                        # ascending
+        values, vectors = np.linalg.eigh(cov)  # ascending
         values = np.maximum(values[:, ::-1], 0)
         vectors = vectors[:, :, ::-1]
-        noise = np.median(values[:, values.shape[1] // 2:], axis=1, keepdims=True) + 1e-30
+        noise = np.median(values[:, values.shape[1] // 2 :], axis=1, keepdims=True) + 1e-30
         floor = np.maximum(NOISE_FACTOR * noise, values[:, :1] * PATH_FLOOR)
         found = np.minimum(np.sum(values > floor, axis=1), self.max_paths)
         paths = np.maximum(found, 1)
-        signal = vectors[:, :, :self.max_paths] * (np.arange(self.max_paths)[None, :] < paths[:, None])[:, None, :]
+        signal = vectors[:, :, : self.max_paths] * (np.arange(self.max_paths)[None, :] < paths[:, None])[:, None, :]
         m, l = len(self.antennas), self.window
-        e = signal.reshape(signal.shape[0], m, l, self.max_paths).transpose(0, 3, 1, 2).conj()   # (P, K, M, L)
-        along_delay = e @ self.delay_manifold.T                                                 # (P, K, M, Nd)
+        e = signal.reshape(signal.shape[0], m, l, self.max_paths).transpose(0, 3, 1, 2).conj()  # (P, K, M, L)
+        along_delay = e @ self.delay_manifold.T  # (P, K, M, Nd)
         out = np.empty((len(cov), len(self.angles), len(self.delays)))
         for start in range(0, len(cov), CHUNK_PACKETS):
-            part = along_delay[start:start + CHUNK_PACKETS]
+            part = along_delay[start : start + CHUNK_PACKETS]
             p, k, _, nd = part.shape
-            flat = part.transpose(2, 0, 1, 3).reshape(m, -1)                                    # one GEMM for all
-            projection = (self.angle_manifold @ flat).reshape(-1, p, k, nd)                     # (Na, P, K, Nd)
-            captured = np.sum(projection.real ** 2 + projection.imag ** 2, axis=2)              # (Na, P, Nd)
-            out[start:start + p] = 1.0 / np.maximum(m * l - captured.transpose(1, 0, 2), 1e-9 * m * l)
+            flat = part.transpose(2, 0, 1, 3).reshape(m, -1)  # one GEMM for all
+            projection = (self.angle_manifold @ flat).reshape(-1, p, k, nd)  # (Na, P, K, Nd)
+            captured = np.sum(projection.real**2 + projection.imag**2, axis=2)  # (Na, P, Nd)
+            out[start : start + p] = 1.0 / np.maximum(m * l - captured.transpose(1, 0, 2), 1e-9 * m * l)
         self._signal = e
         return out, found
 
     def refine(self, peaks: Peaks) -> Peaks:
         """Search a fine grid (one coarse step either side) around each peak, with the signal subspace
         of the last `spectrum` call: coarse-to-fine, so the whole grid never has to be fine."""
-        e = self._signal                                                             # (P, K, M, L)
+        e = self._signal  # (P, K, M, L)
         angle_step = self.angles[1] - self.angles[0]
         delay_step = self.delays[1] - self.delays[0]
-        angles = peaks.angle[..., None] + self.refine_offsets * angle_step           # (P, J, F)
+        angles = peaks.angle[..., None] + self.refine_offsets * angle_step  # (P, J, F)
         delays = peaks.delay[..., None] + self.refine_offsets * delay_step
-        a = self.steer_angle(angles)                                                 # (P, J, F, M)
+        a = self.steer_angle(angles)  # (P, J, F, M)
         b = self.steer_delay(delays.reshape(-1)).reshape(*delays.shape, self.window)  # (P, J, F, L)
-        t = e[:, None] @ b.transpose(0, 1, 3, 2)[:, :, None]                         # (P, J, K, M, F)
-        proj = a[:, :, None] @ t                                                     # (P, J, K, Fa, Fd)
-        captured = np.sum(proj.real ** 2 + proj.imag ** 2, axis=2)                   # (P, J, Fa, Fd)
+        t = e[:, None] @ b.transpose(0, 1, 3, 2)[:, :, None]  # (P, J, K, M, F)
+        proj = a[:, :, None] @ t  # (P, J, K, Fa, Fd)
+        captured = np.sum(proj.real**2 + proj.imag**2, axis=2)  # (P, J, Fa, Fd)
         n = captured.shape[-1]
         best = np.argmax(captured.reshape(*captured.shape[:2], -1), axis=-1)
         ia, idl = np.unravel_index(best, (n, n))
         pick = lambda grid, index: np.take_along_axis(grid, index[..., None], axis=-1)[..., 0]
         angle = np.angle(np.exp(1j * pick(angles, ia)))
-        return Peaks(np.where(peaks.height > 0, angle, peaks.angle),
-                     np.where(peaks.height > 0, pick(delays, idl), peaks.delay), peaks.height)
+        return Peaks(
+            np.where(peaks.height > 0, angle, peaks.angle),
+            np.where(peaks.height > 0, pick(delays, idl), peaks.delay),
+            peaks.height,
+        )
 
     def peaks(self, spectrum: np.ndarray, k: int = 3) -> Peaks:
         """The k highest local maxima per packet, refined by parabolic interpolation on the grid."""
         s = spectrum
-        padded = np.concatenate([s[:, -1:], s, s[:, :1]], axis=1)                     # angles wrap around
-        padded = np.pad(padded, ((0, 0), (0, 0), (1, 1)), constant_values=-np.inf)     # delays do not
+        padded = np.concatenate([s[:, -1:], s, s[:, :1]], axis=1)  # angles wrap around
+        padded = np.pad(padded, ((0, 0), (0, 0), (1, 1)), constant_values=-np.inf)  # delays do not
         na, nd = s.shape[1:]
         local = np.ones(s.shape, dtype=bool)
         for da in (0, 1, 2):
             for dd in (0, 1, 2):
                 if (da, dd) != (1, 1):
-                    local &= s >= padded[:, da:da + na, dd:dd + nd]
+                    local &= s >= padded[:, da : da + na, dd : dd + nd]
         flat_local = local.reshape(len(s), -1)
         flat = s.reshape(len(s), -1)
         top = np.zeros((len(s), k), dtype=np.int64)
@@ -158,14 +169,16 @@ class JointMusic:
         for row in range(len(s)):
             found = np.flatnonzero(flat_local[row])
             best = found[np.argsort(flat[row, found])[::-1][:k]]
-            top[row, :len(best)] = best
-            height[row, :len(best)] = flat[row, best]
+            top[row, : len(best)] = best
+            height[row, : len(best)] = flat[row, best]
         ia, idl = np.unravel_index(top, s.shape[1:])
         p = np.arange(len(s))[:, None]
         centre = s[p, ia, idl]
         da = parabola_offset(s[p, (ia - 1) % na, idl], centre, s[p, (ia + 1) % na, idl])
         inner = (idl > 0) & (idl < nd - 1)
-        dd = np.where(inner, parabola_offset(s[p, ia, np.maximum(idl - 1, 0)], centre, s[p, ia, np.minimum(idl + 1, nd - 1)]), 0)
+        dd = np.where(
+            inner, parabola_offset(s[p, ia, np.maximum(idl - 1, 0)], centre, s[p, ia, np.minimum(idl + 1, nd - 1)]), 0
+        )
         angle_step = self.angles[1] - self.angles[0]
         delay_step = self.delays[1] - self.delays[0]
         angle = np.angle(np.exp(1j * (self.angles[ia] + da * angle_step)))
@@ -177,4 +190,6 @@ class JointMusic:
 def parabola_offset(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> np.ndarray:
     """Offset in grid steps of the vertex of the parabola through three equally spaced points."""
     denom = left - 2 * centre + right
-    return np.where(np.abs(denom) > 1e-30, np.clip(0.5 * (left - right) / np.where(denom == 0, 1, denom), -0.5, 0.5), 0.0)
+    return np.where(
+        np.abs(denom) > 1e-30, np.clip(0.5 * (left - right) / np.where(denom == 0, 1, denom), -0.5, 0.5), 0.0
+    )

@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 
 from rover.errors import BadInput, SpecError
-from rover.messages import header, make
-from rover.operators.aoa.music import JointMusic, parabola_offset
-from rover.operator import Emit, In, Operator, Out
 from rover.formats.rig import Rig, rig_from_text
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
+from rover.messages import header, make
+from rover.operator import Emit, In, Operator, Out
+from rover.operators.aoa.music import JointMusic, parabola_offset
 
 log = logging.getLogger("rover.aoa")
 
@@ -116,9 +116,11 @@ def check_geometry(antennas_m: np.ndarray, max_freq_hz: float) -> str | None:
     bad = (gap >= np.radians(AMBIGUITY_SEPARATION_DEG)) & (corr >= AMBIGUOUS_CORRELATION)
     if bad.any():
         i, j = np.argwhere(bad)[0]
-        raise BadInput(f"aoa: the antenna array cannot tell {math.degrees(angles[i]):.0f} deg from "
-                       f"{math.degrees(angles[j]):.0f} deg at {max_freq_hz / 1e6:.0f} MHz (spacing too large for "
-                       "the wavelength): fix receiver.antenna_positions_m")
+        raise BadInput(
+            f"aoa: the antenna array cannot tell {math.degrees(angles[i]):.0f} deg from "
+            f"{math.degrees(angles[j]):.0f} deg at {max_freq_hz / 1e6:.0f} MHz (spacing too large for "
+            "the wavelength): fix receiver.antenna_positions_m"
+        )
     if axis is not None:
         return "aoa: the antennas are collinear, so angles are resolved only on one side of the array's axis"
     return None
@@ -130,11 +132,11 @@ class ArrayResponse:
     at the first minimum on each side)."""
 
     def __init__(self, antennas_m: np.ndarray, freq_hz: float):
-        self.steering = steering(antennas_m, freq_hz, np.radians(np.arange(360.0)))      # (360, M)
+        self.steering = steering(antennas_m, freq_hz, np.radians(np.arange(360.0)))  # (360, M)
         corr = np.abs(self.steering @ self.steering.conj().T) / len(antennas_m)
         rows = np.arange(360)[:, None]
         index = (rows + np.arange(360)[None, :]) % 360
-        by_offset = corr[rows, index]                                      # [i, d] = corr(i, i + d)
+        by_offset = corr[rows, index]  # [i, d] = corr(i, i + d)
 
         def lobe_edge(side: np.ndarray) -> np.ndarray:
             """Offset of the first minimum along one side (offsets 0..180)."""
@@ -169,7 +171,7 @@ def choose_direct(delay: np.ndarray, height: np.ndarray, paths: int, p: AoaParam
     over a stronger one when it arrives earlier, but only by more than `delay_margin_ns`: at
     20 MHz smaller delay differences are within the estimates' scatter, and picking by them
     picks spurious peaks."""
-    top = np.argsort(-height)[:max(paths, 1)]
+    top = np.argsort(-height)[: max(paths, 1)]
     candidates = top[height[top] >= p.support * height.max()] if height.max() > 0 else np.array([], int)
     if len(candidates) == 0:
         return None
@@ -192,8 +194,16 @@ class Direction:
     switched: bool
 
 
-def check_energy(angle: np.ndarray, delay: np.ndarray, height: np.ndarray, best: int, energy: np.ndarray,
-                 response: ArrayResponse, field: np.ndarray, p: AoaParams) -> Direction:
+def check_energy(
+    angle: np.ndarray,
+    delay: np.ndarray,
+    height: np.ndarray,
+    best: int,
+    energy: np.ndarray,
+    response: ArrayResponse,
+    field: np.ndarray,
+    p: AoaParams,
+) -> Direction:
     """Compare the MUSIC choice (peak `best` of the peaks `angle`, `delay`, `height`) with the power
     each direction explains (Bartlett, whole degrees; only directions in `field` compete).
 
@@ -243,8 +253,11 @@ def burst_std(d: Direction, p: AoaParams) -> float:
     unexplained = (1 - min(d.power, 1.0)) / max(d.power, 1e-6)
     ratio = d.rival_power / max(d.power, 1e-6)
     chance = 0.5 * (1 + math.tanh(0.5 * p.doubt_sharpness * math.log(ratio))) if ratio > 0 else 0.0
-    variance = (math.radians(p.std_floor_deg) ** 2 + math.radians(p.multipath_std_deg) ** 2 * unexplained
-                + chance * d.rival_gap_rad ** 2)
+    variance = (
+        math.radians(p.std_floor_deg) ** 2
+        + math.radians(p.multipath_std_deg) ** 2 * unexplained
+        + chance * d.rival_gap_rad**2
+    )
     return min(math.sqrt(variance), MAX_STD_RAD) if math.isfinite(variance) else MAX_STD_RAD
 
 
@@ -297,15 +310,19 @@ class Aoa(Operator):
     def _estimator(self, channel: int) -> JointMusic:
         if channel not in self.estimators:
             p = self.params
-            self.estimators[channel] = JointMusic(self.rig.antenna_positions_m, channel, window=p.window,
-                                                  angle_step_deg=p.grid_deg, max_paths=p.max_paths)
+            self.estimators[channel] = JointMusic(
+                self.rig.antenna_positions_m, channel, window=p.window, angle_step_deg=p.grid_deg, max_paths=p.max_paths
+            )
         return self.estimators[channel]
 
     def _add(self, msg: Any, stamp_ns: int):
         if self.burst:
             first, last = self.burst[0], self.burst[-1]
-            if (msg.tag_id != first[0].tag_id or stamp_ns - first[1] > self.params.max_burst_s * 1e9
-                    or stamp_ns - last[1] > self.params.max_burst_s * 1e9 / 2):
+            if (
+                msg.tag_id != first[0].tag_id
+                or stamp_ns - first[1] > self.params.max_burst_s * 1e9
+                or stamp_ns - last[1] > self.params.max_burst_s * 1e9 / 2
+            ):
                 yield from self._flush()
         self.burst.append((msg, stamp_ns))
 
@@ -318,8 +335,12 @@ class Aoa(Operator):
             self.skipped["bursts with too few packets"] += 1
             return
         msg0 = usable[0][0]
-        csi = np.stack([(m.csi_real.astype(np.float64) + 1j * m.csi_imag.astype(np.float64))
-                        .reshape(30, m.nrx, m.ntx)[:, :, 0] for m, _ in usable])
+        csi = np.stack(
+            [
+                (m.csi_real.astype(np.float64) + 1j * m.csi_imag.astype(np.float64)).reshape(30, m.nrx, m.ntx)[:, :, 0]
+                for m, _ in usable
+            ]
+        )
         finite = np.isfinite(csi).all(axis=(1, 2)) & (np.abs(csi).sum(axis=(1, 2)) > 0)
         if finite.sum() < self.params.min_packets:
             self.skipped["bursts of empty or invalid CSI"] += 1
@@ -346,8 +367,9 @@ class Aoa(Operator):
             return
         response = self._response(music.center_hz)
         energy = response.energy(np.einsum("pfm,pfn->mn", clean, clean.conj()))
-        direction = check_energy(angle, peaks.delay[0], peaks.height[0], best, energy, response, self.field,
-                                 self.params)
+        direction = check_energy(
+            angle, peaks.delay[0], peaks.height[0], best, energy, response, self.field, self.params
+        )
         theta, tau, used = direction.angle_rad, float(peaks.delay[0, best]), len(csi)
         if direction.switched:
             distance = np.where(peaks.height[0] > 0, np.abs(np.angle(np.exp(1j * (angle - theta)))), np.inf)
@@ -358,9 +380,21 @@ class Aoa(Operator):
         std, quality = self._ambiguity(theta, burst_std(direction, self.params), quality, response)
         stamps = sorted(s for _, s in usable)
         stamp = stamps[len(stamps) // 2]
-        yield Emit("aoa", make("rover_msgs/msg/Aoa", header=header(stamp, "base_link"), tag_id=msg0.tag_id,
-                               channel=msg0.channel, angle_rad=theta, std_rad=std, tof_s=tau, packets=used,
-                               quality=quality), stamp)
+        yield Emit(
+            "aoa",
+            make(
+                "rover_msgs/msg/Aoa",
+                header=header(stamp, "base_link"),
+                tag_id=msg0.tag_id,
+                channel=msg0.channel,
+                angle_rad=theta,
+                std_rad=std,
+                tof_s=tau,
+                packets=used,
+                quality=quality,
+            ),
+            stamp,
+        )
 
     def _ambiguity(self, theta: float, std: float, quality: int, response: ArrayResponse) -> tuple[float, int]:
         """Inflate the std where a direction outside the main lobe looks almost the same to the array."""

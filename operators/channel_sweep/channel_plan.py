@@ -39,7 +39,10 @@ def emissions(excitation_hz: float, tag_hz: float) -> list[Emission]:
     out = [Emission(excitation_hz - shift, 1, 0.0)]
     order = 3
     while (power := -20.0 * math.log10(order)) >= HARMONIC_FLOOR_DB:
-        out += [Emission(excitation_hz + order * shift, order, power), Emission(excitation_hz - order * shift, order, power)]
+        out += [
+            Emission(excitation_hz + order * shift, order, power),
+            Emission(excitation_hz - order * shift, order, power),
+        ]
         order += 2
     return out
 
@@ -70,8 +73,9 @@ class Plan:
         return not self.conflicts
 
 
-def conflicts(excitation_channel: int, channels: dict[int, int],
-              allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ) -> list[Conflict]:
+def conflicts(
+    excitation_channel: int, channels: dict[int, int], allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ
+) -> list[Conflict]:
     """Every conflict of an assignment of channels to tags, in a stable order."""
     f_c = channel_freq_hz(excitation_channel)
     found: list[Conflict] = []
@@ -79,23 +83,39 @@ def conflicts(excitation_channel: int, channels: dict[int, int],
     for tag in tags:
         ch = channels[tag]
         if ch not in allowed:
-            found.append(Conflict("not_allowed", tag, None, f"tag {tag}'s channel {ch} is not in the allowed "
-                                  f"channel list"))
+            found.append(
+                Conflict("not_allowed", tag, None, f"tag {tag}'s channel {ch} is not in the allowed channel list")
+            )
         if overlaps(channel_freq_hz(ch), f_c):
-            found.append(Conflict("excitation", tag, None, f"tag {tag}'s channel {ch} overlaps the excitation "
-                                  f"channel {excitation_channel}"))
+            found.append(
+                Conflict(
+                    "excitation",
+                    tag,
+                    None,
+                    f"tag {tag}'s channel {ch} overlaps the excitation channel {excitation_channel}",
+                )
+            )
     for i, a in enumerate(tags):
-        for b in tags[i + 1:]:
+        for b in tags[i + 1 :]:
             if overlaps(channel_freq_hz(channels[a]), channel_freq_hz(channels[b])):
-                found.append(Conflict("overlap", a, b, f"tags {a} and {b} use overlapping channels "
-                                      f"{channels[a]} and {channels[b]}"))
+                found.append(
+                    Conflict(
+                        "overlap", a, b, f"tags {a} and {b} use overlapping channels {channels[a]} and {channels[b]}"
+                    )
+                )
     for a in tags:
         for em in emissions(f_c, channel_freq_hz(channels[a])):
             for b in tags:
                 if b != a and overlaps(em.freq_hz, channel_freq_hz(channels[b])):
-                    found.append(Conflict("mirror" if em.order == 1 else "harmonic", a, b,
-                                          f"tag {a}'s {em.label} ({em.freq_hz / 1e6:g} MHz, {em.power_db:.1f} dB) "
-                                          f"lands on channel {channels[b]}, tag {b}'s"))
+                    found.append(
+                        Conflict(
+                            "mirror" if em.order == 1 else "harmonic",
+                            a,
+                            b,
+                            f"tag {a}'s {em.label} ({em.freq_hz / 1e6:g} MHz, {em.power_db:.1f} dB) "
+                            f"lands on channel {channels[b]}, tag {b}'s",
+                        )
+                    )
     return found
 
 
@@ -103,12 +123,17 @@ def _compatible(excitation_channel: int, a: int, b: int) -> bool:
     return not conflicts(excitation_channel, {0: a, 1: b}, allowed=(a, b))
 
 
-def usable_channels(excitation_channel: int, allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ,
-                    max_shift_hz: float | None = None) -> list[int]:
+def usable_channels(
+    excitation_channel: int, allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ, max_shift_hz: float | None = None
+) -> list[int]:
     """Allowed channels a tag can shift into: clear of the excitation, within the tag's shift range."""
     f_c = channel_freq_hz(excitation_channel)
-    return [ch for ch in allowed if not overlaps(channel_freq_hz(ch), f_c)
-            and (max_shift_hz is None or abs(channel_freq_hz(ch) - f_c) <= max_shift_hz)]
+    return [
+        ch
+        for ch in allowed
+        if not overlaps(channel_freq_hz(ch), f_c)
+        and (max_shift_hz is None or abs(channel_freq_hz(ch) - f_c) <= max_shift_hz)
+    ]
 
 
 def _compatibility(excitation_channel: int, candidates: list[int]) -> dict[int, set[int]]:
@@ -117,6 +142,7 @@ def _compatibility(excitation_channel: int, candidates: list[int]) -> dict[int, 
 
 def _maximal_cliques(graph: dict[int, set[int]]):
     """Every maximal set of mutually compatible channels (Bron-Kerbosch with pivoting)."""
+
     def expand(clique: list[int], candidates: set[int], excluded: set[int]):
         if not candidates and not excluded:
             yield sorted(clique)
@@ -130,15 +156,20 @@ def _maximal_cliques(graph: dict[int, set[int]]):
     yield from expand([], set(graph), set())
 
 
-def max_tags(excitation_channel: int, allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ,
-             max_shift_hz: float | None = None) -> list[int]:
+def max_tags(
+    excitation_channel: int, allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ, max_shift_hz: float | None = None
+) -> list[int]:
     """A largest set of channels that tags can use at once without conflicts."""
     graph = _compatibility(excitation_channel, usable_channels(excitation_channel, allowed, max_shift_hz))
     return max(_maximal_cliques(graph), key=lambda c: (len(c), [-x for x in c]), default=[])
 
 
-def propose(excitation_channel: int, wanted: dict[int, int], allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ,
-            max_shift_hz: float | None = None) -> Plan | None:
+def propose(
+    excitation_channel: int,
+    wanted: dict[int, int],
+    allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ,
+    max_shift_hz: float | None = None,
+) -> Plan | None:
     """A conflict-free assignment keeping as many tags on their wanted channels as possible (None if none).
 
     Any subset of a set of mutually compatible channels is compatible, so the best plan lives in
@@ -171,8 +202,11 @@ class ExcitationChoice:
     channels: list[int]
 
 
-def best_excitation(allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ, candidates: Iterable[int] | None = None,
-                    max_shift_hz: float | None = None) -> ExcitationChoice:
+def best_excitation(
+    allowed: Sequence[int] = INTEL5300_CHANNELS_5GHZ,
+    candidates: Iterable[int] | None = None,
+    max_shift_hz: float | None = None,
+) -> ExcitationChoice:
     """The excitation channel that lets the most tags work at once; ties go to the band edges, where
     one sideband of every tag falls outside the band (the paper's choice), then to the upper edge."""
     options = []

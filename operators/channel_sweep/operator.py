@@ -14,12 +14,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from rover.operators.channel_sweep.channel_plan import conflicts, max_tags, propose
 from rover.errors import BadInput, SpecError
-from rover.messages import header, make
-from rover.operator import Emit, In, Operator, Out
 from rover.formats.rig import Rig, rig_from_text
 from rover.formats.wifi import INTEL5300_CHANNELS_5GHZ
+from rover.messages import header, make
+from rover.operator import Emit, In, Operator, Out
+from rover.operators.channel_sweep.channel_plan import conflicts, max_tags, propose
 
 log = logging.getLogger("rover.channel_sweep")
 
@@ -35,11 +35,16 @@ class SweepParams:
 class ChannelSweep(Operator):
     """Labels CSI frames with the tag owning their channel; sends the sweep schedule once the rig is known."""
 
-    inputs = {"frames": In("rover_msgs/msg/CsiFrame"), "setup": In("rover_msgs/msg/RigSetup"),
-              "hops": In("rover_msgs/msg/ChannelHop", required=False,
-                         doc="live retuning events; frames with channel 0 take the channel tuned at their stamp")}
-    outputs = {"labelled": Out("rover_msgs/msg/LabelledCsiFrame"),
-               "schedule": Out("rover_msgs/msg/SweepSchedule")}
+    inputs = {
+        "frames": In("rover_msgs/msg/CsiFrame"),
+        "setup": In("rover_msgs/msg/RigSetup"),
+        "hops": In(
+            "rover_msgs/msg/ChannelHop",
+            required=False,
+            doc="live retuning events; frames with channel 0 take the channel tuned at their stamp",
+        ),
+    }
+    outputs = {"labelled": Out("rover_msgs/msg/LabelledCsiFrame"), "schedule": Out("rover_msgs/msg/SweepSchedule")}
     Params = SweepParams
 
     def __init__(self, params: SweepParams | None = None):
@@ -77,8 +82,11 @@ class ChannelSweep(Operator):
         best = max_tags(rig.excitation_channel, p.channels, p.max_shift_hz)
         if found:
             plan = propose(rig.excitation_channel, wanted, p.channels, p.max_shift_hz)
-            advice = (f"a conflict-free assignment: {', '.join(f'tag {t} -> {c}' for t, c in sorted(plan.channels.items()))}"
-                      if plan else "no conflict-free assignment exists for these tags on this excitation channel")
+            advice = (
+                f"a conflict-free assignment: {', '.join(f'tag {t} -> {c}' for t, c in sorted(plan.channels.items()))}"
+                if plan
+                else "no conflict-free assignment exists for these tags on this excitation channel"
+            )
             lines = [c.message for c in found]
             if p.mode == "live":
                 raise BadInput(f"channel plan has {len(found)} conflict(s): {'; '.join(lines)}; {advice}")
@@ -88,11 +96,18 @@ class ChannelSweep(Operator):
         log.info("excitation channel %d allows at most %d tags at once", rig.excitation_channel, len(best))
         self.owner = dict(sorted((t.channel, t.id) for t in rig.tags))
         dwell = rig.dwell_s or p.dwell_s
-        yield Emit("schedule", make("rover_msgs/msg/SweepSchedule", header=header(stamp_ns, "base_link"),
-                                    excitation_channel=rig.excitation_channel,
-                                    channels=np.array(list(self.owner), dtype=np.uint16),
-                                    tag_ids=np.array(list(self.owner.values()), dtype=np.uint32),
-                                    dwell_s=dwell, max_tags=len(best)))
+        yield Emit(
+            "schedule",
+            make(
+                "rover_msgs/msg/SweepSchedule",
+                header=header(stamp_ns, "base_link"),
+                excitation_channel=rig.excitation_channel,
+                channels=np.array(list(self.owner), dtype=np.uint16),
+                tag_ids=np.array(list(self.owner.values()), dtype=np.uint32),
+                dwell_s=dwell,
+                max_tags=len(best),
+            ),
+        )
 
     def _label(self, frame: Any, stamp_ns: int):
         channel = frame.channel or self.tuned
@@ -100,14 +115,18 @@ class ChannelSweep(Operator):
         if tag is None:
             self.unowned[channel] += 1
             return
-        yield Emit("labelled", make("rover_msgs/msg/LabelledCsiFrame", header=frame.header, tag_id=tag,
-                                    channel=channel, bfee=frame.bfee), stamp_ns)
+        yield Emit(
+            "labelled",
+            make("rover_msgs/msg/LabelledCsiFrame", header=frame.header, tag_id=tag, channel=channel, bfee=frame.bfee),
+            stamp_ns,
+        )
 
     def on_end(self):
         if self.waiting:
             log.warning("channel_sweep: %d CSI frames dropped: no rig description arrived", len(self.waiting))
         if self.unowned:
             counts = ", ".join(f"channel {c}: {n}" for c, n in sorted(self.unowned.items()))
-            log.warning("channel_sweep: %d CSI frames dropped on channels no tag owns (%s)",
-                        sum(self.unowned.values()), counts)
+            log.warning(
+                "channel_sweep: %d CSI frames dropped on channels no tag owns (%s)", sum(self.unowned.values()), counts
+            )
         return ()

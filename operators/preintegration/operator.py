@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 
 from rover.errors import BadInput, SpecError
+from rover.formats.rig import rig_from_text
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.formats.rig import rig_from_text
 
 log = logging.getLogger("rover.preintegration")
 
@@ -58,16 +58,27 @@ def exp_so3_batch(w: np.ndarray) -> np.ndarray:
     k = skew_batch(w)
     small = angle < 1e-8
     safe = np.where(small, 1.0, angle)
-    s = np.where(small, 1.0 - angle ** 2 / 6, np.sin(safe) / safe)
-    c = np.where(small, 0.5 - angle ** 2 / 24, (1 - np.cos(safe)) / safe ** 2)
+    s = np.where(small, 1.0 - angle**2 / 6, np.sin(safe) / safe)
+    c = np.where(small, 0.5 - angle**2 / 24, (1 - np.cos(safe)) / safe**2)
     return np.eye(3)[None] + s[:, None, None] * k + c[:, None, None] * (k @ k)
 
 
 def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
@@ -104,16 +115,20 @@ class _Increment:
         jacobian[0:3, 3:6] = np.eye(3) * self.dt
         jacobian[3:6, 0:3] = self.bias_velocity
         jacobian[6:9, 0:3] = self.bias_position
-        biases = np.diag([accel_bias ** 2] * 3 + [gyro_bias ** 2] * 3)
+        biases = np.diag([accel_bias**2] * 3 + [gyro_bias**2] * 3)
         return self.covariance + jacobian @ biases @ jacobian.T
 
 
 class Preintegration(Operator):
     """Emits one Preintegration per AoA epoch (AoAs sharing a stamp are one epoch)."""
 
-    inputs = {"imu": In("sensor_msgs/msg/Imu"), "epochs": In("rover_msgs/msg/Aoa"),
-              "setup": In("rover_msgs/msg/RigSetup", required=False,
-                          doc="for the IMU mounting rotation; identity without it")}
+    inputs = {
+        "imu": In("sensor_msgs/msg/Imu"),
+        "epochs": In("rover_msgs/msg/Aoa"),
+        "setup": In(
+            "rover_msgs/msg/RigSetup", required=False, doc="for the IMU mounting rotation; identity without it"
+        ),
+    }
     outputs = {"odometry": Out("rover_msgs/msg/Preintegration")}
     Params = PreintegrationParams
 
@@ -174,13 +189,20 @@ class Preintegration(Operator):
         accel = np.array([s[2] for s in self.still])
         mean_f = accel.mean(axis=0)
         if moving:
-            log.warning("preintegration: the run does not start with %.1f s standing still: gyro bias taken as "
-                        "zero and the IMU as level", self.params.stationary_s)
+            log.warning(
+                "preintegration: the run does not start with %.1f s standing still: gyro bias taken as "
+                "zero and the IMU as level",
+                self.params.stationary_s,
+            )
             mean_f = np.array([0.0, 0.0, np.linalg.norm(mean_f)])
         else:
             self.bias = gyro.mean(axis=0)
-            log.info("preintegration: gyro bias %s rad/s and gravity %.3f m/s^2 from %.1f s standing still",
-                     np.array2string(self.bias, precision=5), np.linalg.norm(mean_f), span_s)
+            log.info(
+                "preintegration: gyro bias %s rad/s and gravity %.3f m/s^2 from %.1f s standing still",
+                np.array2string(self.bias, precision=5),
+                np.linalg.norm(mean_f),
+                span_s,
+            )
         roll = math.atan2(mean_f[1], mean_f[2])
         pitch = math.atan2(-mean_f[0], math.hypot(mean_f[1], mean_f[2]))
         self.attitude = rpy_matrix(roll, pitch, 0.0)
@@ -205,8 +227,11 @@ class Preintegration(Operator):
             gaps = int(np.sum(dt > self.params.gap_factor * self.nominal_dt))
             if gaps:
                 self.gaps += gaps
-                log.warning("preintegration: %d gap(s) in the IMU stream so far (longest now %.3f s)",
-                            self.gaps, float(dt.max()))
+                log.warning(
+                    "preintegration: %d gap(s) in the IMU stream so far (longest now %.3f s)",
+                    self.gaps,
+                    float(dt.max()),
+                )
         inc = self.increment
         steps = exp_so3_batch(w * dt[:, None])
         rotations = np.empty((len(dt), 3, 3))
@@ -221,8 +246,9 @@ class Preintegration(Operator):
         inc.velocity = inc.velocity + dv.sum(axis=0)
         dj = rotations * dt[:, None, None]
         jv_before = inc.bias_velocity + np.cumsum(dj, axis=0) - dj
-        inc.bias_position = inc.bias_position + np.sum(jv_before * dt[:, None, None] + 0.5 * dj * dt[:, None, None],
-                                                       axis=0)
+        inc.bias_position = inc.bias_position + np.sum(
+            jv_before * dt[:, None, None] + 0.5 * dj * dt[:, None, None], axis=0
+        )
         inc.bias_velocity = inc.bias_velocity + dj.sum(axis=0)
         inc.covariance = self._propagate(inc.covariance, steps, rotations, f, dt)
         inc.rotation = current
@@ -237,15 +263,15 @@ class Preintegration(Operator):
         a = np.zeros((n, 9, 9))
         a[:, 0:3, 0:3] = steps.transpose(0, 2, 1)
         a[:, 3:6, 0:3] = -rf * dt[:, None, None]
-        a[:, 6:9, 0:3] = -0.5 * rf * (dt ** 2)[:, None, None]
+        a[:, 6:9, 0:3] = -0.5 * rf * (dt**2)[:, None, None]
         a[:, 3:6, 3:6] = np.eye(3)
         a[:, 6:9, 3:6] = np.eye(3) * dt[:, None, None]
         a[:, 6:9, 6:9] = np.eye(3)
         safe = np.maximum(dt, 1e-6)
-        b = np.concatenate([rotations * dt[:, None, None], 0.5 * rotations * (dt ** 2)[:, None, None]], axis=1)
+        b = np.concatenate([rotations * dt[:, None, None], 0.5 * rotations * (dt**2)[:, None, None]], axis=1)
         noise = np.zeros((n, 9, 9))
-        noise[:, 3:9, 3:9] = b @ b.transpose(0, 2, 1) * (self.params.accel_noise_m_s2_rthz ** 2 / safe)[:, None, None]
-        noise[:, 0:3, 0:3] = np.eye(3) * (self.params.gyro_noise_rad_s_rthz ** 2 / safe * dt ** 2)[:, None, None]
+        noise[:, 3:9, 3:9] = b @ b.transpose(0, 2, 1) * (self.params.accel_noise_m_s2_rthz**2 / safe)[:, None, None]
+        noise[:, 0:3, 0:3] = np.eye(3) * (self.params.gyro_noise_rad_s_rthz**2 / safe * dt**2)[:, None, None]
         for k in range(n):
             cov = a[k] @ cov @ a[k].T + noise[k]
         return cov
@@ -262,18 +288,29 @@ class Preintegration(Operator):
         if self.epoch_ns is not None:
             r0 = self.epoch_attitude
             dv = r0 @ inc.velocity + self.gravity * inc.dt
-            dp = r0 @ inc.position + 0.5 * self.gravity * inc.dt ** 2
+            dp = r0 @ inc.position + 0.5 * self.gravity * inc.dt**2
             frame = np.eye(9)
             frame[3:6, 3:6] = r0
             frame[6:9, 6:9] = r0
             cov = frame @ inc.with_biases(self.params.accel_bias_m_s2, self.params.gyro_bias_rad_s) @ frame.T
             vec = lambda v: make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
             quat = lambda r: make("geometry_msgs/msg/Quaternion", **dict(zip("xyzw", quaternion(r))))
-            yield Emit("odometry", make(
-                "rover_msgs/msg/Preintegration", header=header(stamp, "world"),
-                start=header(self.epoch_ns).stamp, dt=inc.dt, orientation_start=quat(r0),
-                orientation=quat(self.attitude), delta_velocity=vec(dv), delta_position=vec(dp),
-                covariance=cov.ravel(), samples=inc.samples), stamp)
+            yield Emit(
+                "odometry",
+                make(
+                    "rover_msgs/msg/Preintegration",
+                    header=header(stamp, "world"),
+                    start=header(self.epoch_ns).stamp,
+                    dt=inc.dt,
+                    orientation_start=quat(r0),
+                    orientation=quat(self.attitude),
+                    delta_velocity=vec(dv),
+                    delta_position=vec(dp),
+                    covariance=cov.ravel(),
+                    samples=inc.samples,
+                ),
+                stamp,
+            )
         self.epoch_ns = stamp
         self.epoch_attitude = self.attitude.copy()
         self.increment = _Increment.zero()
@@ -283,6 +320,7 @@ class Preintegration(Operator):
         if dropped:
             log.warning("preintegration: dropped IMU samples: %s", ", ".join(f"{v} {k}" for k, v in dropped.items()))
         if self.attitude is None and self.still:
-            log.warning("preintegration: the IMU stream ended during the stationary start (%d samples)",
-                        len(self.still))
+            log.warning(
+                "preintegration: the IMU stream ended during the stationary start (%d samples)", len(self.still)
+            )
         return ()

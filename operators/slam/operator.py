@@ -53,8 +53,11 @@ def yaw_of(q: Any) -> float:
 def pose_message(stamp: int, x: float, y: float, yaw: float) -> Any:
     position = make("geometry_msgs/msg/Point", x=x, y=y, z=0.0)
     orientation = make("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
-    return make("geometry_msgs/msg/PoseStamped", header=header(stamp, "world"),
-                pose=make("geometry_msgs/msg/Pose", position=position, orientation=orientation))
+    return make(
+        "geometry_msgs/msg/PoseStamped",
+        header=header(stamp, "world"),
+        pose=make("geometry_msgs/msg/Pose", position=position, orientation=orientation),
+    )
 
 
 def edge_of(msg: Any) -> Edge:
@@ -69,9 +72,15 @@ def edge_of(msg: Any) -> Edge:
 class Slam(Operator):
     """Robot and tag positions from AoAs and preintegrated IMU motion."""
 
-    inputs = {"aoa": In("rover_msgs/msg/Aoa"), "odometry": In("rover_msgs/msg/Preintegration"),
-              "wheel": In("nav_msgs/msg/Odometry", required=False,
-                          doc="wheel odometry: forward speed and no sideways motion (fused when `wheel` is on)")}
+    inputs = {
+        "aoa": In("rover_msgs/msg/Aoa"),
+        "odometry": In("rover_msgs/msg/Preintegration"),
+        "wheel": In(
+            "nav_msgs/msg/Odometry",
+            required=False,
+            doc="wheel odometry: forward speed and no sideways motion (fused when `wheel` is on)",
+        ),
+    }
     outputs = {
         "pose": Out("geometry_msgs/msg/PoseStamped", doc="the newest epoch's pose, as estimated at its own time"),
         "trajectory": Out("geometry_msgs/msg/PoseStamped", doc="each epoch's final pose, when it leaves the window"),
@@ -85,7 +94,7 @@ class Slam(Operator):
         super().__init__(params)
         settings = {f: getattr(self.params, f) for f in WindowSettings.__dataclass_fields__}
         if self.params.batch:
-            settings["window"] = 2 ** 31
+            settings["window"] = 2**31
         self.window = SlidingWindow(WindowSettings(**settings))
         self.pending: dict[int, list[Any]] = {}
         self.channels: dict[int, int] = {}
@@ -123,7 +132,11 @@ class Slam(Operator):
         for s in late:
             self.dropped["AoAs without an IMU epoch"] += len(self.pending.pop(s))
         msgs = self.pending.pop(stamp, [])
-        return ([m.tag_id for m in msgs], np.array([m.angle_rad for m in msgs]), np.array([m.std_rad for m in msgs]) * self.params.aoa_std_scale)
+        return (
+            [m.tag_id for m in msgs],
+            np.array([m.angle_rad for m in msgs]),
+            np.array([m.std_rad for m in msgs]) * self.params.aoa_std_scale,
+        )
 
     def _odometry(self, msg: Any, stamp: int):
         start = msg.start.sec * 1_000_000_000 + msg.start.nanosec
@@ -161,17 +174,26 @@ class Slam(Operator):
             self.failures += 1
             log.debug("%s at %.3f s", result.failed, stamp / 1e9)
         newest = w.epochs[-1]
-        x, y = w.x[4 * (len(w.epochs) - 1):4 * (len(w.epochs) - 1) + 2]
+        x, y = w.x[4 * (len(w.epochs) - 1) : 4 * (len(w.epochs) - 1) + 2]
         yield Emit("pose", pose_message(newest.stamp_ns, float(x), float(y), newest.yaw), stamp)
         yield Emit("tags", self._tags(stamp), stamp)
-        yield Emit("diagnostics", make(
-            "rover_msgs/msg/SlamDiagnostics", header=header(stamp, "world"), solve_time_s=elapsed,
-            iterations=result.iterations, window_epochs=len(w.epochs), tags=len(w.tag_ids),
-            huber_active_rows=result.huber_active), stamp)
+        yield Emit(
+            "diagnostics",
+            make(
+                "rover_msgs/msg/SlamDiagnostics",
+                header=header(stamp, "world"),
+                solve_time_s=elapsed,
+                iterations=result.iterations,
+                window_epochs=len(w.epochs),
+                tags=len(w.tag_ids),
+                huber_active_rows=result.huber_active,
+            ),
+            stamp,
+        )
 
     def _finals(self, stamp: int):
         """Poses that left the window since the last call, stamped now on the wire."""
-        for s, x, y, yaw in self.window.finals[self.finals_sent:]:
+        for s, x, y, yaw in self.window.finals[self.finals_sent :]:
             yield Emit("trajectory", pose_message(s, x, y, yaw), stamp)
         self.finals_sent = len(self.window.finals)
 
@@ -181,9 +203,16 @@ class Slam(Operator):
         tags = []
         for i, (tag_id, (x, y)) in enumerate(zip(w.tag_ids, w.tag_positions())):
             cov = np.nan_to_num(w.tag_covariance[i], nan=1e12, posinf=1e12)
-            tags.append(make("rover_msgs/msg/Tag", id=tag_id, channel=self.channels.get(tag_id, 0),
-                             position=make("geometry_msgs/msg/Point", x=float(x), y=float(y), z=0.0),
-                             covariance_xy=cov.ravel().astype(np.float64), observable=bool(observable[i])))
+            tags.append(
+                make(
+                    "rover_msgs/msg/Tag",
+                    id=tag_id,
+                    channel=self.channels.get(tag_id, 0),
+                    position=make("geometry_msgs/msg/Point", x=float(x), y=float(y), z=0.0),
+                    covariance_xy=cov.ravel().astype(np.float64),
+                    observable=bool(observable[i]),
+                )
+            )
         return make("rover_msgs/msg/TagArray", header=header(stamp, "world"), tags=tags)
 
     def _path(self, stamp: int) -> Any:
@@ -207,11 +236,15 @@ class Slam(Operator):
         if self.dropped:
             log.warning("slam: dropped %s", ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items())))
         if self.params.wheel and self.speed is None:
-            log.warning("slam: no wheel odometry arrived: the speed came from the IMU alone, which leaves the "
-                        "scale poorly determined (expect errors of metres; see the README's benchmarks)")
+            log.warning(
+                "slam: no wheel odometry arrived: the speed came from the IMU alone, which leaves the "
+                "scale poorly determined (expect errors of metres; see the README's benchmarks)"
+            )
         if self.unchained:
-            log.warning("slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)",
-                        self.unchained)
+            log.warning(
+                "slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)", self.unchained
+            )
         if self.failures:
-            log.warning("slam: %d of %d updates did not converge (kept the previous estimate)",
-                        self.failures, self.updates)
+            log.warning(
+                "slam: %d of %d updates did not converge (kept the previous estimate)", self.failures, self.updates
+            )

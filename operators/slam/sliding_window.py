@@ -26,7 +26,14 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg
 
-from rover.operators.slam.window_program import Shape, SolverFailed, UpdateData, WindowProgram, edge_matrix, prior_indices
+from rover.operators.slam.window_program import (
+    Shape,
+    SolverFailed,
+    UpdateData,
+    WindowProgram,
+    edge_matrix,
+    prior_indices,
+)
 
 
 @dataclass(frozen=True)
@@ -147,7 +154,7 @@ def wrap(angle: np.ndarray) -> np.ndarray:
 
 def huber_cost(r: np.ndarray, m: float) -> np.ndarray:
     a = np.abs(r)
-    return np.where(a <= m, a ** 2, 2 * m * a - m ** 2)
+    return np.where(a <= m, a**2, 2 * m * a - m**2)
 
 
 def huber_weight(r: np.ndarray, m: float) -> np.ndarray:
@@ -155,11 +162,12 @@ def huber_weight(r: np.ndarray, m: float) -> np.ndarray:
     return np.minimum(1.0, m / np.maximum(np.abs(r), 1e-12))
 
 
-def angle_residuals(delta: np.ndarray, bearing: np.ndarray, std: np.ndarray,
-                    min_range_m: float) -> tuple[np.ndarray, np.ndarray]:
+def angle_residuals(
+    delta: np.ndarray, bearing: np.ndarray, std: np.ndarray, min_range_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Bearing residuals in std units for robot-to-tag vectors `delta`, and their gradients with
     respect to the tag position (the robot's gradient is the opposite)."""
-    range2 = np.maximum(np.sum(delta ** 2, axis=1), min_range_m ** 2)
+    range2 = np.maximum(np.sum(delta**2, axis=1), min_range_m**2)
     predicted = np.arctan2(delta[:, 1], delta[:, 0])
     measured = np.arctan2(bearing[:, 1], bearing[:, 0])
     residual = wrap(predicted - measured) / std
@@ -196,14 +204,22 @@ class SlidingWindow:
         return Shape(len(self.epochs), self.slots, len(self.tag_ids))
 
     def tag_positions(self) -> np.ndarray:
-        return self.x[4 * len(self.epochs):].reshape(-1, 2)
+        return self.x[4 * len(self.epochs) :].reshape(-1, 2)
 
     def poses(self) -> list[tuple[int, float, float, float]]:
         """(stamp, x, y, yaw) of the epochs in the window, oldest first."""
         return [(e.stamp_ns, float(self.x[4 * k]), float(self.x[4 * k + 1]), e.yaw) for k, e in enumerate(self.epochs)]
 
-    def add_epoch(self, stamp_ns: int, yaw: float, tag_ids: list[int], angles_rad: np.ndarray,
-                  stds_rad: np.ndarray, edge: Edge | None, speed_m_s: float | None = None) -> None:
+    def add_epoch(
+        self,
+        stamp_ns: int,
+        yaw: float,
+        tag_ids: list[int],
+        angles_rad: np.ndarray,
+        stds_rad: np.ndarray,
+        edge: Edge | None,
+        speed_m_s: float | None = None,
+    ) -> None:
         """Append an epoch: the robot-frame AoAs seen there, the odometry from the previous epoch and,
         when there is wheel odometry, the forward speed."""
         s = self.settings
@@ -212,12 +228,13 @@ class SlidingWindow:
         if not self.epochs:
             state = np.zeros(4)
             if self.prior is None:
-                self.prior = Prior(np.diag([s.gauge_std_m ** -2] * 2 + [s.initial_velocity_std_m_s ** -2] * 2),
-                                   np.zeros(4), np.zeros(4))
+                self.prior = Prior(
+                    np.diag([s.gauge_std_m**-2] * 2 + [s.initial_velocity_std_m_s**-2] * 2), np.zeros(4), np.zeros(4)
+                )
         else:
             if edge is None:
                 raise ValueError("an epoch after the first needs its odometry edge")
-            last = self.x[4 * (len(self.epochs) - 1):4 * len(self.epochs)]
+            last = self.x[4 * (len(self.epochs) - 1) : 4 * len(self.epochs)]
             state = np.concatenate([last[0:2] + last[2:4] * edge.dt + edge.delta[2:4], last[2:4] + edge.delta[0:2]])
             self.edges.append(edge)
         tags = self.tag_positions()
@@ -228,13 +245,13 @@ class SlidingWindow:
                 self._add_tag(tag_id, guess)
                 tags = np.vstack([tags, guess])
             slots.append(self.tag_ids.index(tag_id))
-        self.x = np.concatenate([self.x[:4 * len(self.epochs)], state, tags.ravel()])
+        self.x = np.concatenate([self.x[: 4 * len(self.epochs)], state, tags.ravel()])
         epoch = Epoch(stamp_ns, yaw, np.array(slots, dtype=int), bearing, np.asarray(stds_rad, float))
         forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
         if s.nonholonomic:
-            epoch.velocity_info = np.outer(side, side) / s.lateral_std_m_s ** 2
+            epoch.velocity_info = np.outer(side, side) / s.lateral_std_m_s**2
         if speed_m_s is not None:
-            var = s.wheel_speed_std_m_s ** 2 + (s.wheel_scale_std * speed_m_s) ** 2
+            var = s.wheel_speed_std_m_s**2 + (s.wheel_scale_std * speed_m_s) ** 2
             epoch.velocity_info = epoch.velocity_info + np.outer(forward, forward) / var
             epoch.velocity_linear = forward * speed_m_s / var
         self.epochs.append(epoch)
@@ -248,7 +265,7 @@ class SlidingWindow:
         n = len(p.mean)
         info = np.zeros((n + 2, n + 2))
         info[:n, :n] = p.info
-        info[n:, n:] = np.eye(2) * self.settings.tag_prior_std_m ** -2
+        info[n:, n:] = np.eye(2) * self.settings.tag_prior_std_m**-2
         self.prior = Prior(info, np.concatenate([p.mean, guess]), np.concatenate([p.grad, np.zeros(2)]))
 
     # -- the model ------------------------------------------------------------------------------
@@ -268,10 +285,10 @@ class SlidingWindow:
     def _offsets(self, x: np.ndarray, epoch: np.ndarray, tag: np.ndarray) -> np.ndarray:
         """Robot-to-tag vectors b - mu per slot."""
         e = len(self.epochs)
-        tags = x[4 * e:].reshape(-1, 2)
+        tags = x[4 * e :].reshape(-1, 2)
         if len(tags) == 0:
             return np.zeros((len(epoch), 2))
-        return tags[np.maximum(tag, 0)] - x[:4 * e].reshape(-1, 4)[epoch, 0:2]
+        return tags[np.maximum(tag, 0)] - x[: 4 * e].reshape(-1, 4)[epoch, 0:2]
 
     def _slot_coefficients(self, tag_part: np.ndarray, tag: np.ndarray) -> np.ndarray:
         """Row coefficients at the program's columns: -v on the epoch's position, +v on its tag's."""
@@ -293,24 +310,31 @@ class SlidingWindow:
         ne = len(self.edges)
         chol = np.stack([e.chol for e in self.edges]) if ne else np.zeros((0, 4, 4))
         return _Model(
-            edge_l=edge_matrix(np.array([e.dt for e in self.edges])), edge_chol=chol,
+            edge_l=edge_matrix(np.array([e.dt for e in self.edges])),
+            edge_chol=chol,
             edge_whiten=np.linalg.inv(chol) if ne else chol,
             edge_delta=np.stack([e.delta for e in self.edges]) if ne else np.zeros((0, 4)),
             pairs=4 * np.arange(ne)[:, None] + np.arange(8),
             velocity_info=np.stack([e.velocity_info for e in self.epochs]),
             velocity_linear=np.stack([e.velocity_linear for e in self.epochs]),
-            prior_index=prior_indices(self.shape))
+            prior_index=prior_indices(self.shape),
+        )
 
     def _cost(self, model: _Model, x: np.ndarray, residual: np.ndarray) -> float:
         """The true cost: odometry, wheel, prior, and the Huber loss of the angle residuals."""
         r = np.einsum("nij,nj->ni", model.edge_l, x[model.pairs]) - model.edge_delta
         odometry = 0.5 * float(np.sum(np.einsum("nij,nj->ni", model.edge_whiten, r) ** 2))
-        v = x[:4 * len(self.epochs)].reshape(-1, 4)[:, 2:4]
+        v = x[: 4 * len(self.epochs)].reshape(-1, 4)[:, 2:4]
         wheel = float(0.5 * np.einsum("ni,nij,nj->", v, model.velocity_info, v) - np.sum(model.velocity_linear * v))
         p = self.prior
         d = x[model.prior_index] - p.mean
-        return (odometry + wheel + 0.5 * float(d @ p.info @ d) + float(p.grad @ d)
-                + 0.5 * float(huber_cost(residual, self.settings.huber_sigma).sum()))
+        return (
+            odometry
+            + wheel
+            + 0.5 * float(d @ p.info @ d)
+            + float(p.grad @ d)
+            + 0.5 * float(huber_cost(residual, self.settings.huber_sigma).sum())
+        )
 
     # -- one update -----------------------------------------------------------------------------
 
@@ -324,9 +348,16 @@ class SlidingWindow:
         model = self._model()
         c = np.zeros(shape.states)
         c[model.prior_index] = p.info @ p.mean - p.grad
-        c[:4 * shape.epochs].reshape(-1, 4)[:, 2:4] += model.velocity_linear
-        base = dict(prior_info=p.info, velocity_info=model.velocity_info, c=c, edge_l=model.edge_l,
-                    edge_chol=model.edge_chol, edge_delta=model.edge_delta, huber_m=s.huber_sigma)
+        c[: 4 * shape.epochs].reshape(-1, 4)[:, 2:4] += model.velocity_linear
+        base = dict(
+            prior_info=p.info,
+            velocity_info=model.velocity_info,
+            c=c,
+            edge_l=model.edge_l,
+            edge_chol=model.edge_chol,
+            edge_delta=model.edge_delta,
+            huber_m=s.huber_sigma,
+        )
         epoch, tag, bearing, std, filled = self._rows()
         perp = np.stack([-bearing[:, 1], bearing[:, 0]], axis=1)
         zeros_g = np.zeros((shape.rows, 2 + 2 * shape.tags))
@@ -336,12 +367,18 @@ class SlidingWindow:
         try:
             d = np.maximum(np.linalg.norm(self._offsets(x, epoch, tag), axis=1), s.min_range_m)
             localized = np.zeros(max(shape.tags, 1), bool)
-            localized[:len(self.tag_covariance)] = self.observable()
+            localized[: len(self.tag_covariance)] = self.observable()
             for _ in range(s.reweight_passes):
                 scale = np.where(filled, 1.0 / (d * std), 0.0)
-                x, iterations = self.program.solve(UpdateData(
-                    **base, a=self._slot_coefficients(perp * scale[:, None], tag), offset=np.zeros(shape.rows),
-                    g=self._slot_coefficients(bearing * scale[:, None], tag), hinge=s.hinge_weight * weight))
+                x, iterations = self.program.solve(
+                    UpdateData(
+                        **base,
+                        a=self._slot_coefficients(perp * scale[:, None], tag),
+                        offset=np.zeros(shape.rows),
+                        g=self._slot_coefficients(bearing * scale[:, None], tag),
+                        hinge=s.hinge_weight * weight,
+                    )
+                )
                 result.iterations += iterations
                 offsets = self._offsets(x, epoch, tag)
                 r = np.einsum("ij,ij->i", perp, offsets) * scale
@@ -358,9 +395,15 @@ class SlidingWindow:
             if cost_p < cost:
                 x, residual, jb, cost = self.x.copy(), res_p, jb_p, cost_p
             for _ in range(s.refine_iterations):
-                trial, iterations = self.program.solve(UpdateData(
-                    **base, a=self._slot_coefficients(jb, tag), offset=residual, g=zeros_g,
-                    hinge=np.full(shape.rows, GN_HINGE_WEIGHT)))
+                trial, iterations = self.program.solve(
+                    UpdateData(
+                        **base,
+                        a=self._slot_coefficients(jb, tag),
+                        offset=residual,
+                        g=zeros_g,
+                        hinge=np.full(shape.rows, GN_HINGE_WEIGHT),
+                    )
+                )
                 result.iterations += iterations
                 res_t, jb_t = self._angles(trial, epoch, tag, bearing, std, filled)
                 cost_t = self._cost(model, trial, res_t[filled])
@@ -387,7 +430,7 @@ class SlidingWindow:
         if not s.reset_updates:
             return
         localized = np.zeros(len(self.tag_ids), bool)
-        localized[:len(self.tag_covariance)] = self.observable()
+        localized[: len(self.tag_covariance)] = self.observable()
         for t in range(len(self.tag_ids)):
             mine = tags == t
             if localized[t] and mine.sum() >= 3 and active[mine].mean() > 0.5:
@@ -396,7 +439,7 @@ class SlidingWindow:
                 self.disagreement[t] = 0
             if self.disagreement.get(t, 0) >= s.reset_updates:
                 keep = np.ones(len(self.prior.mean))
-                keep[4 + 2 * t:6 + 2 * t] = math.sqrt(s.reset_factor)
+                keep[4 + 2 * t : 6 + 2 * t] = math.sqrt(s.reset_factor)
                 p = self.prior
                 self.prior = Prior(p.info * np.outer(keep, keep), p.mean, p.grad * keep)
                 self.disagreement[t] = 0
@@ -422,15 +465,20 @@ class SlidingWindow:
         cols.append(np.repeat(vel[:, None, :], 2, axis=1).ravel())
         vals.append(np.stack([e.velocity_info for e in self.epochs]).ravel())
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
-        cols_slot = np.concatenate([4 * epoch[:, None] + np.arange(2),
-                                    np.broadcast_to(4 * shape.epochs + np.arange(2 * shape.tags),
-                                                    (shape.rows, 2 * shape.tags))], axis=1)
+        cols_slot = np.concatenate(
+            [
+                4 * epoch[:, None] + np.arange(2),
+                np.broadcast_to(4 * shape.epochs + np.arange(2 * shape.tags), (shape.rows, 2 * shape.tags)),
+            ],
+            axis=1,
+        )
         outer = coeff[:, :, None] * coeff[:, None, :]
         rows.append(np.repeat(cols_slot[:, :, None], cols_slot.shape[1], axis=2).ravel())
         cols.append(np.repeat(cols_slot[:, None, :], cols_slot.shape[1], axis=1).ravel())
         vals.append(outer.ravel())
-        return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(shape.states, shape.states))
+        return sp.csc_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(shape.states, shape.states)
+        )
 
     def _covariances(self, epoch, tag, residual, jb, filled) -> None:
         nt = len(self.tag_ids)
@@ -442,7 +490,7 @@ class SlidingWindow:
             cov = scipy.sparse.linalg.splu(info).solve(rhs)[e:]
         except RuntimeError:
             cov = np.full((2 * nt, 2 * nt), np.inf)
-        self.tag_covariance = np.array([cov[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
+        self.tag_covariance = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`)."""
@@ -470,7 +518,7 @@ class SlidingWindow:
         info[2:4, 2:4] += old.velocity_info
         grad[2:4] += old.velocity_info @ x[2:4] - old.velocity_linear
         if len(old.tags):
-            delta = x[4 * e:].reshape(-1, 2)[old.tags] - x[0:2]
+            delta = x[4 * e :].reshape(-1, 2)[old.tags] - x[0:2]
             r, jb = angle_residuals(delta, old.bearing, old.std, s.min_range_m)
             w = huber_weight(r, s.huber_sigma)
             for j, t in enumerate(old.tags):

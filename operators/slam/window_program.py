@@ -97,8 +97,9 @@ def slot_columns(shape: Shape) -> np.ndarray:
     """Per slot, the state columns of its row: the epoch's position, then every tag's position."""
     epoch = np.repeat(np.arange(shape.epochs), shape.slots)
     tags = 4 * shape.epochs + np.arange(2 * shape.tags)
-    return np.concatenate([4 * epoch[:, None] + np.arange(2)[None, :],
-                           np.broadcast_to(tags, (shape.rows, 2 * shape.tags))], axis=1)
+    return np.concatenate(
+        [4 * epoch[:, None] + np.arange(2)[None, :], np.broadcast_to(tags, (shape.rows, 2 * shape.tags))], axis=1
+    )
 
 
 @dataclass(frozen=True)
@@ -144,19 +145,28 @@ class WindowProgram:
         vel = 4 * np.arange(shape.epochs)[:, None] + 2
         vel_rows = np.concatenate([vel, vel, vel + 1], axis=1).ravel()
         vel_cols = np.concatenate([vel, vel + 1, vel + 1], axis=1).ravel()
-        p_rows = np.concatenate([np.repeat(pri, len(pri))[self.prior_upper], vel_rows, self.rho0 + np.arange(4 * ne),
-                                 self.n0 + np.arange(r)])
-        p_cols = np.concatenate([np.tile(pri, len(pri))[self.prior_upper], vel_cols, self.rho0 + np.arange(4 * ne),
-                                 self.n0 + np.arange(r)])
+        p_rows = np.concatenate(
+            [
+                np.repeat(pri, len(pri))[self.prior_upper],
+                vel_rows,
+                self.rho0 + np.arange(4 * ne),
+                self.n0 + np.arange(r),
+            ]
+        )
+        p_cols = np.concatenate(
+            [np.tile(pri, len(pri))[self.prior_upper], vel_cols, self.rho0 + np.arange(4 * ne), self.n0 + np.arange(r)]
+        )
         self.p_pattern = FixedPattern(p_rows, p_cols, (self.nz, self.nz))
         self.p_tail = np.ones(4 * ne + r)
         edge = np.arange(ne)
         li, lj = L_PATTERN
         self.l_index = (li, lj)
-        odo_rows = np.concatenate([(4 * edge[:, None] + li).ravel(),
-                                   np.repeat(4 * edge[:, None] + np.arange(4), 4, axis=1).ravel()])
-        odo_cols = np.concatenate([(4 * edge[:, None] + lj).ravel(),
-                                   (self.rho0 + 4 * edge[:, None] + np.tile(np.arange(4), 4)).ravel()])
+        odo_rows = np.concatenate(
+            [(4 * edge[:, None] + li).ravel(), np.repeat(4 * edge[:, None] + np.arange(4), 4, axis=1).ravel()]
+        )
+        odo_cols = np.concatenate(
+            [(4 * edge[:, None] + lj).ravel(), (self.rho0 + 4 * edge[:, None] + np.tile(np.arange(4), 4)).ravel()]
+        )
         self.columns = slot_columns(shape)
         width = self.columns.shape[1]
         slot = np.arange(r)
@@ -165,11 +175,15 @@ class WindowProgram:
         a_rows = np.concatenate([np.repeat(base, width), np.repeat(base + 1, width), np.repeat(base + 3, width)])
         a_cols = np.tile(self.columns.ravel(), 3)
         aux_rows = np.concatenate([base, base + 1, base, base + 1, base + 2, base + 3])
-        aux_cols = np.concatenate([self.n0 + slot, self.n0 + slot, self.t0 + slot, self.t0 + slot,
-                                   self.h0 + slot, self.h0 + slot])
+        aux_cols = np.concatenate(
+            [self.n0 + slot, self.n0 + slot, self.t0 + slot, self.t0 + slot, self.h0 + slot, self.h0 + slot]
+        )
         self.aux_values = np.concatenate([-np.ones(r), np.ones(r), -np.ones(r), -np.ones(r), -np.ones(r), -np.ones(r)])
-        self.a_pattern = FixedPattern(np.concatenate([odo_rows, a_rows, aux_rows]),
-                                      np.concatenate([odo_cols, a_cols, aux_cols]), (4 * ne + 4 * r, self.nz))
+        self.a_pattern = FixedPattern(
+            np.concatenate([odo_rows, a_rows, aux_rows]),
+            np.concatenate([odo_cols, a_cols, aux_cols]),
+            (4 * ne + 4 * r, self.nz),
+        )
         self.equalities = 4 * ne
         self.cones = ([clarabel.ZeroConeT(4 * ne)] if ne else []) + [clarabel.NonnegativeConeT(4 * r)]
         self.settings = clarabel.DefaultSettings()
@@ -187,20 +201,30 @@ class WindowProgram:
         q = np.concatenate([-d.c, np.zeros(self.n0 - self.rho0 + r), np.full(r, d.huber_m), d.hinge])
         li, lj = self.l_index
         l_values = d.edge_l[:, li, lj]
-        a_data = self.a_pattern.data(np.concatenate([
-            l_values.ravel(), -d.edge_chol.reshape(len(d.edge_chol), 16).ravel(),
-            d.a.ravel(), -d.a.ravel(), -d.g.ravel(), self.aux_values]))
+        a_data = self.a_pattern.data(
+            np.concatenate(
+                [
+                    l_values.ravel(),
+                    -d.edge_chol.reshape(len(d.edge_chol), 16).ravel(),
+                    d.a.ravel(),
+                    -d.a.ravel(),
+                    -d.g.ravel(),
+                    self.aux_values,
+                ]
+            )
+        )
         b = np.zeros(self.equalities + 4 * r)
-        b[:self.equalities] = d.edge_delta.ravel()
-        b[self.equalities::4] = -d.offset
-        b[self.equalities + 1::4] = d.offset
+        b[: self.equalities] = d.edge_delta.ravel()
+        b[self.equalities :: 4] = -d.offset
+        b[self.equalities + 1 :: 4] = d.offset
         if self.solver is None:
-            self.solver = clarabel.DefaultSolver(self.p_pattern.matrix(p), q, self.a_pattern.matrix(a_data), b,
-                                                 self.cones, self.settings)
+            self.solver = clarabel.DefaultSolver(
+                self.p_pattern.matrix(p), q, self.a_pattern.matrix(a_data), b, self.cones, self.settings
+            )
         else:
             self.solver.update(P=p, q=q, A=a_data, b=b)
         solution = self.solver.solve()
         status = str(solution.status)
         if status not in ("Solved", "AlmostSolved"):
             raise SolverFailed(f"slam: Clarabel stopped with status {status}")
-        return np.asarray(solution.x)[:self.shape.states], int(solution.iterations)
+        return np.asarray(solution.x)[: self.shape.states], int(solution.iterations)

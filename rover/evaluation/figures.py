@@ -72,8 +72,12 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
         if not mine.any():
             continue
         reference = to_start.apply(np.asarray(where)[None])[0]
-        line, = ax.plot((stamps[mine] - t0) / 1e9, np.linalg.norm(xy[mine] - reference, axis=1) * 100,
-                        label=f"tag {tag_id}{' (NLOS)' if nlos else ''}", lw=1)
+        (line,) = ax.plot(
+            (stamps[mine] - t0) / 1e9,
+            np.linalg.norm(xy[mine] - reference, axis=1) * 100,
+            label=f"tag {tag_id}{' (NLOS)' if nlos else ''}",
+            lw=1,
+        )
         heard = aoa_stamps[aoa_ids == tag_id]
         if len(heard):
             ax.axvline((heard.min() - t0) / 1e9, color=line.get_color(), ls=":", lw=0.8)

@@ -41,12 +41,15 @@ def yaw_from_quaternion(qx, qy, qz, qw):
 
 def poses_of_messages(msgs: list) -> Poses2D:
     """Planar poses of geometry_msgs/PoseStamped messages, in the given order."""
-    q = np.array([[m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w]
-                  for m in msgs]).reshape(-1, 4)
+    q = np.array(
+        [[m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w] for m in msgs]
+    ).reshape(-1, 4)
     stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs]
-    return Poses2D(np.array(stamps, dtype=np.int64),
-                   np.array([[m.pose.position.x, m.pose.position.y] for m in msgs]).reshape(-1, 2),
-                   yaw_from_quaternion(*q.T))
+    return Poses2D(
+        np.array(stamps, dtype=np.int64),
+        np.array([[m.pose.position.x, m.pose.position.y] for m in msgs]).reshape(-1, 2),
+        yaw_from_quaternion(*q.T),
+    )
 
 
 def associate(reference: Poses2D, estimate: Poses2D, max_diff_s: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
@@ -79,8 +82,13 @@ def fit_rigid(source: np.ndarray, target: np.ndarray) -> Rigid2D:
 
 
 def error_stats(errors: np.ndarray) -> dict[str, float]:
-    return {"mean_m": float(np.mean(errors)), "median_m": float(np.median(errors)),
-            "rmse_m": float(np.sqrt(np.mean(errors ** 2))), "max_m": float(np.max(errors)), "poses": int(len(errors))}
+    return {
+        "mean_m": float(np.mean(errors)),
+        "median_m": float(np.median(errors)),
+        "rmse_m": float(np.sqrt(np.mean(errors**2))),
+        "max_m": float(np.max(errors)),
+        "poses": int(len(errors)),
+    }
 
 
 @dataclass(frozen=True)
@@ -103,8 +111,12 @@ def trajectory_errors(truth: Poses2D, estimate: Poses2D, max_diff_s: float = 0.0
     reference = to_start.apply(truth.xy[i])
     est = estimate.xy[j]
     alignment = fit_rigid(est, reference)
-    return TrajectoryErrors(error_stats(np.linalg.norm(est - reference, axis=1)),
-                            error_stats(np.linalg.norm(alignment.apply(est) - reference, axis=1)), alignment, to_start)
+    return TrajectoryErrors(
+        error_stats(np.linalg.norm(est - reference, axis=1)),
+        error_stats(np.linalg.norm(alignment.apply(est) - reference, axis=1)),
+        alignment,
+        to_start,
+    )
 
 
 @dataclass(frozen=True)
@@ -146,9 +158,15 @@ def angle_stats(errors_rad: np.ndarray, std_rad: np.ndarray) -> dict[str, float]
     if len(deg) == 0:
         return {"count": 0}
     z = np.abs(errors_rad) / std_rad
-    return {"count": int(len(deg)), "median_deg": float(np.median(deg)), "p90_deg": float(np.percentile(deg, 90)),
-            "mean_deg": float(np.mean(deg)), "error_over_std_median": float(np.median(z)),
-            "within_1_std": float(np.mean(z <= 1)), "within_3_std": float(np.mean(z <= 3))}
+    return {
+        "count": int(len(deg)),
+        "median_deg": float(np.median(deg)),
+        "p90_deg": float(np.percentile(deg, 90)),
+        "mean_deg": float(np.mean(deg)),
+        "error_over_std_median": float(np.median(z)),
+        "within_1_std": float(np.mean(z <= 1)),
+        "within_3_std": float(np.mean(z <= 3)),
+    }
 
 
 def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
@@ -178,8 +196,11 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
         metrics[f"{kind}_tags_mean_m"] = float(np.mean(errors)) if errors else None
     error, nlos, std = aoa_errors(run, truth)
     if len(error):
-        metrics["aoa"] = {"all": angle_stats(error, std), "los": angle_stats(error[~nlos], std[~nlos]),
-                          "nlos": angle_stats(error[nlos], std[nlos])}
+        metrics["aoa"] = {
+            "all": angle_stats(error, std),
+            "los": angle_stats(error[~nlos], std[~nlos]),
+            "nlos": angle_stats(error[nlos], std[nlos]),
+        }
     return metrics
 
 
@@ -201,8 +222,11 @@ def aoa_errors(run: RunRecord, truth: Truth) -> tuple[np.ndarray, np.ndarray, np
     position, yaw = poses_at(truth.trajectory, stamps[known])
     where = np.array([truth.tags[int(i)][0] for i in ids[known]])
     true = np.arctan2(where[:, 1] - position[:, 1], where[:, 0] - position[:, 0]) - yaw
-    return (np.angle(np.exp(1j * (angles[known] - true))), np.array([truth.tags[int(i)][1] for i in ids[known]]),
-            stds[known])
+    return (
+        np.angle(np.exp(1j * (angles[known] - true))),
+        np.array([truth.tags[int(i)][1] for i in ids[known]]),
+        stds[known],
+    )
 
 
 PAPER_ROBOT_MEAN_M = 0.393
@@ -216,26 +240,36 @@ def render(metrics: dict) -> str:
     for name, entry in metrics["robot"].items():
         for kind in ("unaligned", "aligned"):
             e = entry[kind]
-            lines.append(f"{name + ' ' + kind:<30}{cm(e['mean_m']):>10}{cm(e['median_m']):>10}{cm(e['rmse_m']):>10}"
-                         f"{cm(e['max_m']):>10}{e['poses']:>7}")
+            lines.append(
+                f"{name + ' ' + kind:<30}{cm(e['mean_m']):>10}{cm(e['median_m']):>10}{cm(e['rmse_m']):>10}"
+                f"{cm(e['max_m']):>10}{e['poses']:>7}"
+            )
     lines.append(f"  paper (Zhang et al.): robot mean {cm(PAPER_ROBOT_MEAN_M)}")
     lines.append(f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}{'sigmas':>8}")
     for tag_id, t in metrics["tags"].items():
         label = f"{tag_id}{' NLOS' if t['nlos'] else ''}"
         if t["localized"]:
             sigmas = "-" if t["sigmas"] is None else f"{t['sigmas']:.1f}"
-            lines.append(f"{label:<8}{cm(t['error_m']):>10}{cm(t['aligned_error_m']):>10}{cm(t['reported_std_m']):>14}"
-                         f"{sigmas:>8}")
+            lines.append(
+                f"{label:<8}{cm(t['error_m']):>10}{cm(t['aligned_error_m']):>10}{cm(t['reported_std_m']):>14}"
+                f"{sigmas:>8}"
+            )
         else:
             lines.append(f"{label:<8}{'never localized':>34}")
-    lines.append(f"LOS tags mean {cm(metrics['los_tags_mean_m'])} (paper {cm(PAPER_LOS_TAGS_MEAN_M)}), "
-                 f"NLOS tags mean {cm(metrics['nlos_tags_mean_m'])}")
+    lines.append(
+        f"LOS tags mean {cm(metrics['los_tags_mean_m'])} (paper {cm(PAPER_LOS_TAGS_MEAN_M)}), "
+        f"NLOS tags mean {cm(metrics['nlos_tags_mean_m'])}"
+    )
     if "aoa" in metrics:
         for kind, a in metrics["aoa"].items():
             if a["count"]:
-                lines.append(f"AoA {kind:<4} median {a['median_deg']:.1f} deg, 90th percentile {a['p90_deg']:.1f} deg "
-                             f"({a['count']} bursts); |error|/std: median {a['error_over_std_median']:.2f}, "
-                             f"{a['within_1_std']:.0%} <= 1, {a['within_3_std']:.0%} <= 3")
-        lines.append("  a unit Gaussian's |error|/std: median 0.67, 68% <= 1, 99.7% <= 3; sigmas: a tag's error "
-                     "in its reported covariance's standard deviations")
+                lines.append(
+                    f"AoA {kind:<4} median {a['median_deg']:.1f} deg, 90th percentile {a['p90_deg']:.1f} deg "
+                    f"({a['count']} bursts); |error|/std: median {a['error_over_std_median']:.2f}, "
+                    f"{a['within_1_std']:.0%} <= 1, {a['within_3_std']:.0%} <= 3"
+                )
+        lines.append(
+            "  a unit Gaussian's |error|/std: median 0.67, 68% <= 1, 99.7% <= 3; sigmas: a tag's error "
+            "in its reported covariance's standard deviations"
+        )
     return "\n".join(lines) + "\n"

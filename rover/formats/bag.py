@@ -44,9 +44,9 @@ class BagWriter:
             return known[0]
         if typename not in self._schemas:
             self._schemas[typename] = self._writer.register_schema(
-                name=typename, encoding="ros2msg", data=ros2_msgdef(typename).encode())
-        channel = self._writer.register_channel(topic=topic, message_encoding="cdr",
-                                                schema_id=self._schemas[typename])
+                name=typename, encoding="ros2msg", data=ros2_msgdef(typename).encode()
+            )
+        channel = self._writer.register_channel(topic=topic, message_encoding="cdr", schema_id=self._schemas[typename])
         self._channels[topic] = (channel, typename)
         return channel
 
@@ -54,8 +54,13 @@ class BagWriter:
         """Append a decoded message or a Raw one, logged at its event time."""
         typename = msg.typename if isinstance(msg, Raw) else msg.__msgtype__
         self.count += 1
-        self._writer.add_message(self._channel(topic, typename), log_time=stamp_ns, data=serialize(msg, typename),
-                                 publish_time=stamp_ns, sequence=self.count)
+        self._writer.add_message(
+            self._channel(topic, typename),
+            log_time=stamp_ns,
+            data=serialize(msg, typename),
+            publish_time=stamp_ns,
+            sequence=self.count,
+        )
 
     @property
     def closed(self) -> bool:

@@ -47,9 +47,23 @@ NTX_AMPLITUDE_CORRECTION = np.array([1.0, 1.0, np.sqrt(2.0), np.sqrt(10 ** (4.5 
 _PERM_SUM_BY_NRX = np.array([0, 1, 3, 6])
 """What read_bf_file expects the three perm entries to sum to for 1, 2, 3 receive chains."""
 
-_HEADER = np.dtype([("timestamp_low", "<u4"), ("bfee_count", "<u2"), ("reserved", "<u2"), ("nrx", "u1"),
-                    ("ntx", "u1"), ("rssi_a", "u1"), ("rssi_b", "u1"), ("rssi_c", "u1"), ("noise", "i1"),
-                    ("agc", "u1"), ("antenna_sel", "u1"), ("len", "<u2"), ("rate", "<u2")])
+_HEADER = np.dtype(
+    [
+        ("timestamp_low", "<u4"),
+        ("bfee_count", "<u2"),
+        ("reserved", "<u2"),
+        ("nrx", "u1"),
+        ("ntx", "u1"),
+        ("rssi_a", "u1"),
+        ("rssi_b", "u1"),
+        ("rssi_c", "u1"),
+        ("noise", "i1"),
+        ("agc", "u1"),
+        ("antenna_sel", "u1"),
+        ("len", "<u2"),
+        ("rate", "<u2"),
+    ]
+)
 assert _HEADER.itemsize == HEADER_BYTES
 _NRX_AT, _NTX_AT, _LEN_AT = (1 + _HEADER.fields[name][1] for name in ("nrx", "ntx", "len"))
 """Offsets of header fields from a record's code byte."""
@@ -132,6 +146,7 @@ def antenna_perm(antenna_sel: np.ndarray | int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Decoding records already framed (all vectorized over records)
 
+
 def _antenna_sources(perm: np.ndarray, nrx: np.ndarray) -> np.ndarray:
     """(N, 3): the raw chain each antenna reads, as read_bf_file arranges the chains.
 
@@ -212,15 +227,16 @@ def _unpack(buf: np.ndarray, payload_at: np.ndarray, nrx: int, ntx: int, sources
     """
     layout = _word_layout(nrx, ntx, sources)
     rows = sliding_window_view(buf, layout.span)[payload_at]
-    even = rows[:, :2 * layout.n_even].view("<u2")
-    odd = rows[:, 1:1 + (layout.span - 1) // 2 * 2].view("<u2")
+    even = rows[:, : 2 * layout.n_even].view("<u2")
+    odd = rows[:, 1 : 1 + (layout.span - 1) // 2 * 2].view("<u2")
     words = np.concatenate([even, odd], axis=1)
     values = np.take(words, layout.column, axis=1) >> layout.shift
     return values.astype(np.uint8).view(np.int8).astype(np.float64)
 
 
-def _scale_factors(power: np.ndarray, rssi: np.ndarray, noise: np.ndarray, agc: np.ndarray, nrx: np.ndarray,
-                   ntx: np.ndarray) -> np.ndarray:
+def _scale_factors(
+    power: np.ndarray, rssi: np.ndarray, noise: np.ndarray, agc: np.ndarray, nrx: np.ndarray, ntx: np.ndarray
+) -> np.ndarray:
     """get_scaled_csi's factor per record, given the raw CSI power sum(|csi|^2) of each record.
 
     Total RSS (dBm) = 10 log10(sum of 10^(rssi/10) over the nonzero rssi_a/b/c) - 44 - AGC; the
@@ -240,13 +256,25 @@ def _scale_factors(power: np.ndarray, rssi: np.ndarray, noise: np.ndarray, agc: 
 
 def _empty_records(scaled: bool) -> CsiRecords:
     """No records: every array with length 0 and its usual dtype; csi (0, 30, 0, 0)."""
+
     def none(name: str) -> np.ndarray:
         return np.zeros(0, dtype=_HEADER[name])
 
-    return CsiRecords(none("timestamp_low"), none("bfee_count"), none("nrx"), none("ntx"),
-                      np.zeros((0, 3), np.uint8), none("noise"), none("agc"), none("antenna_sel"),
-                      np.zeros((0, 3), np.uint8), none("rate"), np.zeros((0, SUBCARRIERS, 0, 0), np.complex128),
-                      offset=np.zeros(0, np.int64), scaled=scaled)
+    return CsiRecords(
+        none("timestamp_low"),
+        none("bfee_count"),
+        none("nrx"),
+        none("ntx"),
+        np.zeros((0, 3), np.uint8),
+        none("noise"),
+        none("agc"),
+        none("antenna_sel"),
+        np.zeros((0, 3), np.uint8),
+        none("rate"),
+        np.zeros((0, SUBCARRIERS, 0, 0), np.complex128),
+        offset=np.zeros(0, np.int64),
+        scaled=scaled,
+    )
 
 
 def _decode(buf: np.ndarray, code_at: np.ndarray, scaled: bool) -> CsiRecords:
@@ -278,13 +306,25 @@ def _decode(buf: np.ndarray, code_at: np.ndarray, scaled: bool) -> CsiRecords:
         csi = np.zeros((n, SUBCARRIERS, int(nrx.max()), int(ntx.max())), dtype=np.complex128)
         for g, row in enumerate(first):
             rows = np.flatnonzero(inverse == g)
-            csi[rows, :, :nrx[row], :ntx[row]] = group_csi(rows, row)
+            csi[rows, :, : nrx[row], : ntx[row]] = group_csi(rows, row)
     if scaled:
         flat = csi.reshape(n, -1).view(np.float64)
         flat *= _scale_factors(np.einsum("ij,ij->i", flat, flat), rssi, head["noise"], head["agc"], nrx, ntx)[:, None]
-    return CsiRecords(head["timestamp_low"].copy(), head["bfee_count"].copy(), nrx.copy(), ntx.copy(), rssi,
-                      head["noise"].copy(), head["agc"].copy(), head["antenna_sel"].copy(), perm.astype(np.uint8),
-                      head["rate"].copy(), csi, offset=code_at - LENGTH_BYTES, scaled=scaled)
+    return CsiRecords(
+        head["timestamp_low"].copy(),
+        head["bfee_count"].copy(),
+        nrx.copy(),
+        ntx.copy(),
+        rssi,
+        head["noise"].copy(),
+        head["agc"].copy(),
+        head["antenna_sel"].copy(),
+        perm.astype(np.uint8),
+        head["rate"].copy(),
+        csi,
+        offset=code_at - LENGTH_BYTES,
+        scaled=scaled,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -311,7 +351,7 @@ def _valid_starts(buf: np.ndarray, lo: int, hi: int) -> np.ndarray:
     hi = min(hi, len(buf) - RECORD_HEAD_BYTES + 1)
     if hi <= lo:
         return np.zeros(0, dtype=np.int64)
-    p = lo + np.flatnonzero(buf[lo + LENGTH_BYTES:hi + LENGTH_BYTES] == BFEE_CODE)
+    p = lo + np.flatnonzero(buf[lo + LENGTH_BYTES : hi + LENGTH_BYTES] == BFEE_CODE)
     length = (buf[p].astype(np.int64) << 8) | buf[p + 1]
     code_at = p + LENGTH_BYTES
     return p[_consistent_headers(buf, code_at) & (length == 1 + HEADER_BYTES + _len_field(buf, code_at))]
@@ -495,7 +535,7 @@ def _records_of(buf: np.ndarray, framing: _Framing, scaled: bool, base: int = 0)
 def _record_bytes(buf: np.ndarray, starts: np.ndarray) -> list[bytes]:
     """Each record at `starts` as code byte + notification."""
     data = buf.tobytes()
-    return [data[s + LENGTH_BYTES:s + LENGTH_BYTES + ((data[s] << 8) | data[s + 1])] for s in starts.tolist()]
+    return [data[s + LENGTH_BYTES : s + LENGTH_BYTES + ((data[s] << 8) | data[s + 1])] for s in starts.tolist()]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -603,10 +643,12 @@ def concat(parts: Sequence[CsiRecords]) -> CsiRecords:
         return _empty_records(scaled=True)
     nrx_max = max(p.csi.shape[2] for p in parts)
     ntx_max = max(p.csi.shape[3] for p in parts)
-    csi = [np.pad(p.csi, ((0, 0), (0, 0), (0, nrx_max - p.csi.shape[2]), (0, ntx_max - p.csi.shape[3])))
-           for p in parts]
-    joined = {f.name: np.concatenate([getattr(p, f.name) for p in parts])
-              for f in fields(CsiRecords) if f.name not in ("csi", "scaled") and not f.name.startswith("n_")}
+    csi = [np.pad(p.csi, ((0, 0), (0, 0), (0, nrx_max - p.csi.shape[2]), (0, ntx_max - p.csi.shape[3]))) for p in parts]
+    joined = {
+        f.name: np.concatenate([getattr(p, f.name) for p in parts])
+        for f in fields(CsiRecords)
+        if f.name not in ("csi", "scaled") and not f.name.startswith("n_")
+    }
     counts = {name: sum(getattr(p, name) for p in parts) for name in ("n_skipped", "n_corrupt", "n_garbage_bytes")}
     return CsiRecords(**joined, csi=np.concatenate(csi), scaled=parts[0].scaled, **counts)
 
@@ -651,6 +693,18 @@ def encode_record(head: RecordHeader, csi: np.ndarray) -> bytes:
     bits = np.zeros(length * 8, dtype=np.uint8)
     bits[bit.ravel()] = ((values.ravel().astype(np.uint8)[:, None] >> np.arange(8, dtype=np.uint8)) & 1).ravel()
     payload = np.packbits(bits, bitorder="little").tobytes()
-    header = struct.pack("<IHHBBBBBbBBHH", head.timestamp_low & 0xFFFFFFFF, head.bfee_count & 0xFFFF, 0, nrx, ntx,
-                         *head.rssi, head.noise, head.agc, head.antenna_sel, length, head.rate)
+    header = struct.pack(
+        "<IHHBBBBBbBBHH",
+        head.timestamp_low & 0xFFFFFFFF,
+        head.bfee_count & 0xFFFF,
+        0,
+        nrx,
+        ntx,
+        *head.rssi,
+        head.noise,
+        head.agc,
+        head.antenna_sel,
+        length,
+        head.rate,
+    )
     return bytes([BFEE_CODE]) + header + payload

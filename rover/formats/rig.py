@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from rover.errors import Diagnostic, SpecError
-from rover.pipeline.spec import did_you_mean, read_document
 from rover.formats.wifi import INTEL5300_CHANNELS_5GHZ, channel_freq_hz, freq_channel
+from rover.pipeline.spec import did_you_mean, read_document
 from rover.pipeline.yamlpos import Located, load
 
 TOP_KEYS = ("receiver", "excitation", "tags", "topics", "imu", "sweep")
@@ -82,8 +82,11 @@ class _Reader:
             return {}
         for key in data:
             if key not in allowed:
-                self.warnings.append(self.doc.diag(path + (key,), f"unknown key {key!r} in {what} is ignored"
-                                                   f"{did_you_mean(key, allowed)}", key=True))
+                self.warnings.append(
+                    self.doc.diag(
+                        path + (key,), f"unknown key {key!r} in {what} is ignored{did_you_mean(key, allowed)}", key=True
+                    )
+                )
         return data
 
     def numbers(self, value: Any, path: tuple, what: str, length: int | None = None) -> list[float] | None:
@@ -114,11 +117,15 @@ def parse_rig(doc: Located) -> Rig:
     positions = receiver.get("antenna_positions_m")
     antennas = np.zeros((0, 2))
     if not isinstance(positions, list) or len(positions) < 2:
-        r.error(("receiver", "antenna_positions_m") if positions is not None else ("receiver",),
-                "receiver.antenna_positions_m must list at least two antenna positions [x, y] in metres")
+        r.error(
+            ("receiver", "antenna_positions_m") if positions is not None else ("receiver",),
+            "receiver.antenna_positions_m must list at least two antenna positions [x, y] in metres",
+        )
     else:
-        rows = [r.numbers(p, ("receiver", "antenna_positions_m", i), f"antenna {i} position")
-                for i, p in enumerate(positions)]
+        rows = [
+            r.numbers(p, ("receiver", "antenna_positions_m", i), f"antenna {i} position")
+            for i, p in enumerate(positions)
+        ]
         if all(row is not None and len(row) in (2, 3) for row in rows):
             antennas = np.array([row[:2] for row in rows])
         elif all(row is not None for row in rows):
@@ -126,7 +133,13 @@ def parse_rig(doc: Located) -> Rig:
 
     offsets: dict[int | None, np.ndarray] = {}
     raw_offsets = receiver.get("phase_offsets_rad")
-    items = raw_offsets.items() if isinstance(raw_offsets, dict) else [(None, raw_offsets)] if raw_offsets is not None else []
+    items = (
+        raw_offsets.items()
+        if isinstance(raw_offsets, dict)
+        else [(None, raw_offsets)]
+        if raw_offsets is not None
+        else []
+    )
     for ch, values in items:
         path = ("receiver", "phase_offsets_rad") + ((ch,) if ch is not None else ())
         if ch is not None and r.channel(ch, path, "phase_offsets_rad key") is None:
@@ -136,8 +149,11 @@ def parse_rig(doc: Located) -> Rig:
             offsets[ch] = np.array(row)
 
     excitation = r.section(top.get("excitation"), ("excitation",), ("channel",), "excitation")
-    exc_channel = r.channel(excitation.get("channel"), ("excitation", "channel"), "excitation.channel") \
-        if "channel" in excitation else None
+    exc_channel = (
+        r.channel(excitation.get("channel"), ("excitation", "channel"), "excitation.channel")
+        if "channel" in excitation
+        else None
+    )
     if exc_channel is None and "channel" not in excitation:
         r.error(("excitation",) if "excitation" in top else (), "the setup needs excitation: {channel: N}")
 
@@ -174,8 +190,12 @@ def parse_rig(doc: Located) -> Rig:
         if rate is not None and not (isinstance(rate, (int, float)) and rate > 0):
             r.error(("imu", "rate_hz"), f"imu.rate_hz must be a positive number, got {rate!r}")
             rate = None
-        imu = ImuMount(str(imu_raw.get("frame_id", "imu_link")), float(rate) if rate else None,
-                       tuple(rpy or (0.0, 0.0, 0.0)), tuple(pos or (0.0, 0.0, 0.0)))
+        imu = ImuMount(
+            str(imu_raw.get("frame_id", "imu_link")),
+            float(rate) if rate else None,
+            tuple(rpy or (0.0, 0.0, 0.0)),
+            tuple(pos or (0.0, 0.0, 0.0)),
+        )
 
     sweep = r.section(top.get("sweep"), ("sweep",), ("dwell_s",), "sweep")
     dwell = sweep.get("dwell_s")
@@ -186,8 +206,18 @@ def parse_rig(doc: Located) -> Rig:
     if r.errors:
         raise SpecError(r.errors + r.warnings)
     interface = receiver.get("interface", "wlan0")
-    return Rig(antennas, exc_channel, tuple(tags), offsets, str(interface), topics, imu,
-               float(dwell) if dwell else None, "", tuple(r.warnings))
+    return Rig(
+        antennas,
+        exc_channel,
+        tuple(tags),
+        offsets,
+        str(interface),
+        topics,
+        imu,
+        float(dwell) if dwell else None,
+        "",
+        tuple(r.warnings),
+    )
 
 
 def _tag(r: _Reader, path: tuple, tag_id: int, tag: dict, exc_channel: int | None) -> TagSpec | None:
@@ -205,9 +235,12 @@ def _tag(r: _Reader, path: tuple, tag_id: int, tag: dict, exc_channel: int | Non
         sides = [c for c in (freq_channel(f_c - shift), freq_channel(f_c + shift)) if c in INTEL5300_CHANNELS_5GHZ]
         if channel is None:
             if len(sides) != 1:
-                r.error(path + ("shift_hz",), f"tag {tag_id}: a shift of {shift / 1e6:g} MHz from channel "
-                        f"{exc_channel} lands on {'no channel' if not sides else 'channels ' + str(sides)}; "
-                        "give its channel too")
+                r.error(
+                    path + ("shift_hz",),
+                    f"tag {tag_id}: a shift of {shift / 1e6:g} MHz from channel "
+                    f"{exc_channel} lands on {'no channel' if not sides else 'channels ' + str(sides)}; "
+                    "give its channel too",
+                )
                 return None
             channel = sides[0]
         elif channel not in sides:

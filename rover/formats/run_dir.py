@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rover.formats.truth import Trajectory, read_dataset_truth, read_tags_csv, read_tum
 from rover.errors import BadInput
 from rover.evaluation.metrics import Poses2D, RunRecord, Truth, yaw_from_quaternion
+from rover.formats.truth import Trajectory, read_dataset_truth, read_tags_csv, read_tum
 
 RUN_FILE = "run.json"
 """names the dataset a run read, so `rover eval` finds its truth"""
@@ -29,8 +29,12 @@ def _read_tags(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 try:
                     ids.append(int(row["id"]))
                     xy.append([float(row["x"]) if row["x"] else math.nan, float(row["y"]) if row["y"] else math.nan])
-                    cov.append([[float(row["var_x"] or "nan"), float(row["cov_xy"] or "nan")],
-                                [float(row["cov_xy"] or "nan"), float(row["var_y"] or "nan")]])
+                    cov.append(
+                        [
+                            [float(row["var_x"] or "nan"), float(row["cov_xy"] or "nan")],
+                            [float(row["cov_xy"] or "nan"), float(row["var_y"] or "nan")],
+                        ]
+                    )
                 except (KeyError, TypeError, ValueError):
                     raise BadInput(f"{path}:{number}: not a tags.csv row: {row}") from None
     except OSError as exc:
@@ -62,14 +66,27 @@ def _read_results(path: Path):
     return history, aoa
 
 
-def record(final: Poses2D, live: Poses2D, tags: tuple[np.ndarray, np.ndarray, np.ndarray],
-           history: list[tuple[int, int, float, float, bool]], aoa: list[tuple[int, int, float, float]]) -> RunRecord:
+def record(
+    final: Poses2D,
+    live: Poses2D,
+    tags: tuple[np.ndarray, np.ndarray, np.ndarray],
+    history: list[tuple[int, int, float, float, bool]],
+    aoa: list[tuple[int, int, float, float]],
+) -> RunRecord:
     h = np.array(history, dtype=object).reshape(-1, 5)
     a = np.array(aoa, dtype=object).reshape(-1, 4)
-    return RunRecord(final, live, *tags,
-                     tag_history=(h[:, 0].astype(np.int64), h[:, 1].astype(int), h[:, 2:4].astype(float).reshape(-1, 2),
-                                  h[:, 4].astype(bool)),
-                     aoa=(a[:, 0].astype(np.int64), a[:, 1].astype(int), a[:, 2].astype(float), a[:, 3].astype(float)))
+    return RunRecord(
+        final,
+        live,
+        *tags,
+        tag_history=(
+            h[:, 0].astype(np.int64),
+            h[:, 1].astype(int),
+            h[:, 2:4].astype(float).reshape(-1, 2),
+            h[:, 4].astype(bool),
+        ),
+        aoa=(a[:, 0].astype(np.int64), a[:, 1].astype(int), a[:, 2].astype(float), a[:, 3].astype(float)),
+    )
 
 
 def load_run(run_dir: str | Path) -> RunRecord:
@@ -78,10 +95,16 @@ def load_run(run_dir: str | Path) -> RunRecord:
         raise BadInput(f"{run_dir}: no trajectory.tum (is it the --output directory of a `rover run`?)")
     final = poses_of(read_tum(run_dir / "trajectory.tum"))
     live_path = run_dir / "trajectory_live.tum"
-    live = poses_of(read_tum(live_path)) if live_path.exists() else Poses2D(np.zeros(0, np.int64), np.zeros((0, 2)),
-                                                                             np.zeros(0))
-    tags = _read_tags(run_dir / "tags.csv") if (run_dir / "tags.csv").exists() else (
-        np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2)))
+    live = (
+        poses_of(read_tum(live_path))
+        if live_path.exists()
+        else Poses2D(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0))
+    )
+    tags = (
+        _read_tags(run_dir / "tags.csv")
+        if (run_dir / "tags.csv").exists()
+        else (np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2)))
+    )
     history, aoa = _read_results(run_dir / "results.mcap")
     return record(final, live, tags, history, aoa)
 

@@ -82,8 +82,14 @@ def parse_tags_csv(text: str, source: str) -> list[TruthTag]:
     tags = []
     for row in reader:
         try:
-            tags.append(TruthTag(int(row["id"]), int(row["channel"]), (float(row["x"]), float(row["y"]), float(row["z"])),
-                                 bool(int(row.get("nlos") or 0))))
+            tags.append(
+                TruthTag(
+                    int(row["id"]),
+                    int(row["channel"]),
+                    (float(row["x"]), float(row["y"]), float(row["z"])),
+                    bool(int(row.get("nlos") or 0)),
+                )
+            )
         except (TypeError, ValueError):
             raise BadInput(f"{source}:{reader.line_num}: bad tag row {row}") from None
     return tags
@@ -103,12 +109,14 @@ def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthT
         with path.open("rb") as f:
             reader = make_reader(f)
             meta = {m.name: m.metadata for m in reader.iter_metadata()}
-            for schema, channel, message in reader.iter_messages(topics=["/groundtruth/pose", "/groundtruth/tags"],
-                                                                 log_time_order=False):
+            for schema, channel, message in reader.iter_messages(
+                topics=["/groundtruth/pose", "/groundtruth/tags"], log_time_order=False
+            ):
                 msg = deserialize(message.data, schema.name)
                 if channel.topic == "/groundtruth/tags":
-                    tags = [TruthTag(t.id, t.channel, (t.position.x, t.position.y, t.position.z), False)
-                            for t in msg.tags]
+                    tags = [
+                        TruthTag(t.id, t.channel, (t.position.x, t.position.y, t.position.z), False) for t in msg.tags
+                    ]
                     continue
                 p, q = msg.pose.position, msg.pose.orientation
                 stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
@@ -119,6 +127,9 @@ def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthT
     if "tags_csv" in meta.get("rover.truth", {}):
         tags = parse_tags_csv(meta["rover.truth"]["tags_csv"], f"{path} (metadata rover.truth)")
     order = np.argsort(np.array(stamps, dtype=np.int64), kind="stable")
-    trajectory = (Trajectory(np.array(stamps, dtype=np.int64)[order], np.array(xyz)[order], np.array(quat)[order])
-                  if stamps else None)
+    trajectory = (
+        Trajectory(np.array(stamps, dtype=np.int64)[order], np.array(xyz)[order], np.array(quat)[order])
+        if stamps
+        else None
+    )
     return trajectory, tags

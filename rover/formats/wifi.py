@@ -9,8 +9,32 @@ SUBCARRIER_SPACING_HZ = 312_500.0
 CHANNEL_WIDTH_HZ = 20e6
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 
-INTEL5300_CHANNELS_5GHZ = (36, 40, 44, 48, 52, 56, 60, 64, 100, 104, 108, 112, 116, 120, 124, 128, 132, 136, 140,
-                           149, 153, 157, 161, 165)
+INTEL5300_CHANNELS_5GHZ = (
+    36,
+    40,
+    44,
+    48,
+    52,
+    56,
+    60,
+    64,
+    100,
+    104,
+    108,
+    112,
+    116,
+    120,
+    124,
+    128,
+    132,
+    136,
+    140,
+    149,
+    153,
+    157,
+    161,
+    165,
+)
 """The 20 MHz channels of the 5 GHz band the Intel 5300 tunes to."""
 
 SUBCARRIERS_20MHZ = np.array([*range(-28, -1, 2), -1, 1, *range(3, 28, 2), 28])

@@ -17,7 +17,9 @@ from rover.pipeline.yamlpos import Located, load
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 VAR_RE = re.compile(r"\$\{([^}]*)\}")
-ENDPOINT_RE = re.compile(r"^(?:(?:tcp|udp|tls|quic|ws)/(?:\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+):\d{1,5}|unixsock-stream/.+)(?:#.*)?$")
+ENDPOINT_RE = re.compile(
+    r"^(?:(?:tcp|udp|tls|quic|ws)/(?:\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+):\d{1,5}|unixsock-stream/.+)(?:#.*)?$"
+)
 
 TOP_KEYS = ("version", "name", "description", "vars", "hosts", "operators")
 HOST_KEYS = ("listen", "connect", "connect_timeout_s")
@@ -113,8 +115,11 @@ def _substitute(value: Any, path: tuple, variables: dict[str, Any], col: _Collec
 
     def lookup(name: str) -> Any:
         if name not in variables:
-            col.add(path, f"undefined variable ${{{name}}}{did_you_mean(name, variables)} "
-                          f"(define it under vars: or pass --set {name}=...)")
+            col.add(
+                path,
+                f"undefined variable ${{{name}}}{did_you_mean(name, variables)} "
+                f"(define it under vars: or pass --set {name}=...)",
+            )
             return ""
         return variables[name]
 
@@ -166,7 +171,9 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                 continue
             for i, ep in enumerate(endpoints):
                 if not (isinstance(ep, str) and ENDPOINT_RE.match(ep)):
-                    col.add(path + (kind, i), f"bad endpoint {ep!r}: expected PROTOCOL/ADDRESS, e.g. 'tcp/127.0.0.1:7447'")
+                    col.add(
+                        path + (kind, i), f"bad endpoint {ep!r}: expected PROTOCOL/ADDRESS, e.g. 'tcp/127.0.0.1:7447'"
+                    )
                 else:
                     getattr(host, kind).append(ep)
         timeout = hval.get("connect_timeout_s", DEFAULT_CONNECT_TIMEOUT_S)
@@ -202,8 +209,9 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                 continue
             source, source_port = src.split("/")
             spec.inputs[str(port)] = Wire(str(port), source, source_port)
-        spec.params = _substitute(col.mapping(oval.get("params"), path + ("params",), "params"),
-                                  path + ("params",), variables, col)
+        spec.params = _substitute(
+            col.mapping(oval.get("params"), path + ("params",), "params"), path + ("params",), variables, col
+        )
         operators[oname] = spec
 
     return PipelineSpec(doc.file, name, variables, hosts, operators, doc), col.problems

@@ -7,15 +7,15 @@ the message type of every wire resolved, which is all the runtime needs.
 from __future__ import annotations
 
 import ipaddress
-from dataclasses import dataclass
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rover.pipeline import params as P
 from rover.errors import Diagnostic, SpecError
 from rover.messages import ANY
 from rover.operator import In, Operator, Source
+from rover.pipeline import params as P
 from rover.pipeline.resolve import UnknownOperator, resolve
 from rover.pipeline.spec import OperatorSpec, PipelineSpec, Wire, did_you_mean, parse, read_document
 
@@ -58,8 +58,12 @@ class Pipeline:
         return sorted({n.spec.host for n in self.nodes.values() if n.spec.host})
 
     def consumers(self, source: str, port: str) -> list[tuple[Node, Wire]]:
-        return [(n, w) for n in self.nodes.values() for w in n.spec.inputs.values()
-                if w.source == source and w.source_port == port]
+        return [
+            (n, w)
+            for n in self.nodes.values()
+            for w in n.spec.inputs.values()
+            if w.source == source and w.source_port == port
+        ]
 
     def summary(self) -> str:
         wires = sum(len(n.spec.inputs) for n in self.nodes.values())
@@ -70,10 +74,12 @@ class Pipeline:
 
 def _params(doc, spec: OperatorSpec, cls: type[Operator], problems: list[Diagnostic]) -> Any:
     base = ("operators", spec.name, "params")
-    wording = P.Wording(unknown=lambda key: f"operator {spec.name!r} ({spec.uses}) has no param {key!r}",
-                        ill_typed=lambda key: f"param {key!r} of operator {spec.name!r}",
-                        missing=lambda key, label: f"operator {spec.name!r} ({spec.uses}) needs param {key!r} ({label})",
-                        known_list=True)
+    wording = P.Wording(
+        unknown=lambda key: f"operator {spec.name!r} ({spec.uses}) has no param {key!r}",
+        ill_typed=lambda key: f"param {key!r} of operator {spec.name!r}",
+        missing=lambda key, label: f"operator {spec.name!r} ({spec.uses}) needs param {key!r} ({label})",
+        known_list=True,
+    )
 
     def report(path: tuple, message: str, at_key: bool) -> None:
         problems.append(doc.diag(base + path if path else ("operators", spec.name), message, key=at_key))
@@ -89,33 +95,60 @@ def _check_ports(doc, nodes: dict[str, Node], specs: dict[str, OperatorSpec], pr
             spec_in: In | None = cls.input_spec(port)
             if spec_in is None:
                 known = ", ".join(cls.inputs) or "none"
-                problems.append(doc.diag(base + (port,), f"operator {node.name!r} ({node.spec.uses}) has no input "
-                                         f"{port!r}{did_you_mean(port, cls.inputs)} (inputs: {known})", key=True))
+                problems.append(
+                    doc.diag(
+                        base + (port,),
+                        f"operator {node.name!r} ({node.spec.uses}) has no input "
+                        f"{port!r}{did_you_mean(port, cls.inputs)} (inputs: {known})",
+                        key=True,
+                    )
+                )
                 continue
             if wire.source not in specs:
-                problems.append(doc.diag(base + (port,), f"input {port!r} is wired to unknown operator "
-                                         f"{wire.source!r}{did_you_mean(wire.source, specs)}"))
+                problems.append(
+                    doc.diag(
+                        base + (port,),
+                        f"input {port!r} is wired to unknown operator "
+                        f"{wire.source!r}{did_you_mean(wire.source, specs)}",
+                    )
+                )
                 continue
             source = nodes.get(wire.source)
             if source is None:
                 continue
             if wire.source_port not in source.cls.outputs:
                 known = ", ".join(source.cls.outputs) or "none"
-                problems.append(doc.diag(base + (port,), f"operator {wire.source!r} ({source.spec.uses}) has no output "
-                                         f"{wire.source_port!r}{did_you_mean(wire.source_port, source.cls.outputs)} "
-                                         f"(outputs: {known})"))
+                problems.append(
+                    doc.diag(
+                        base + (port,),
+                        f"operator {wire.source!r} ({source.spec.uses}) has no output "
+                        f"{wire.source_port!r}{did_you_mean(wire.source_port, source.cls.outputs)} "
+                        f"(outputs: {known})",
+                    )
+                )
                 continue
             out_type = source.output_type(wire.source_port)
             if spec_in.type not in (ANY, out_type):
-                problems.append(doc.diag(base + (port,), f"message type mismatch: {wire.text} sends {out_type} but "
-                                         f"input {port!r} of {node.name!r} takes {spec_in.type}"))
+                problems.append(
+                    doc.diag(
+                        base + (port,),
+                        f"message type mismatch: {wire.text} sends {out_type} but "
+                        f"input {port!r} of {node.name!r} takes {spec_in.type}",
+                    )
+                )
         for port, spec_in in cls.inputs.items():
             if spec_in.required and port not in node.spec.inputs:
-                problems.append(doc.diag(("operators", node.name), f"required input {port!r} ({spec_in.type}) of "
-                                         f"operator {node.name!r} is not wired", key=True))
+                problems.append(
+                    doc.diag(
+                        ("operators", node.name),
+                        f"required input {port!r} ({spec_in.type}) of operator {node.name!r} is not wired",
+                        key=True,
+                    )
+                )
         if issubclass(cls, Source) and node.spec.inputs:
-            problems.append(doc.diag(base, f"operator {node.name!r} ({node.spec.uses}) is a source and takes no inputs",
-                                     key=True))
+            problems.append(
+                doc.diag(base, f"operator {node.name!r} ({node.spec.uses}) is a source and takes no inputs", key=True)
+            )
 
 
 def _check_cycles(doc, specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
@@ -130,9 +163,13 @@ def _check_cycles(doc, specs: dict[str, OperatorSpec], problems: list[Diagnostic
             if wire.source not in specs:
                 continue
             if state[wire.source] == GREY:
-                loop = stack[stack.index(wire.source):] + [wire.source]
-                problems.append(doc.diag(("operators", name, "inputs", wire.port),
-                                         f"cycle: {' <- '.join(loop)} (a pipeline must be acyclic)"))
+                loop = stack[stack.index(wire.source) :] + [wire.source]
+                problems.append(
+                    doc.diag(
+                        ("operators", name, "inputs", wire.port),
+                        f"cycle: {' <- '.join(loop)} (a pipeline must be acyclic)",
+                    )
+                )
             elif state[wire.source] == WHITE:
                 visit(wire.source)
         stack.pop()
@@ -177,25 +214,44 @@ def _check_hosts(doc, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
         path = ("operators", op.name, "host")
         if op.host is None:
             if hosts:
-                problems.append(doc.diag(("operators", op.name), f"operator {op.name!r} has no host: (hosts: "
-                                         f"{', '.join(hosts)})", key=True))
+                problems.append(
+                    doc.diag(
+                        ("operators", op.name),
+                        f"operator {op.name!r} has no host: (hosts: {', '.join(hosts)})",
+                        key=True,
+                    )
+                )
         elif op.host not in hosts:
             declared = f" (hosts: {', '.join(hosts)})" if hosts else " (the file declares no hosts:)"
-            problems.append(doc.diag(path, f"operator {op.name!r} is placed on undeclared host "
-                                     f"{op.host!r}{did_you_mean(op.host, hosts)}{declared}"))
+            problems.append(
+                doc.diag(
+                    path,
+                    f"operator {op.name!r} is placed on undeclared host "
+                    f"{op.host!r}{did_you_mean(op.host, hosts)}{declared}",
+                )
+            )
     if len(hosts) < 2:
         return
     links = {h: set() for h in hosts}
     for a in hosts.values():
         raw = (doc.data.get("hosts") or {}).get(a.name) or {}
         if not a.listen and not a.connect and not ({"listen", "connect"} & set(raw)):
-            problems.append(doc.diag(("hosts", a.name), f"host {a.name!r} has neither listen nor connect endpoints, "
-                                     "so no other host can reach it", key=True))
+            problems.append(
+                doc.diag(
+                    ("hosts", a.name),
+                    f"host {a.name!r} has neither listen nor connect endpoints, so no other host can reach it",
+                    key=True,
+                )
+            )
         for i, ep in enumerate(a.connect):
             targets = [b.name for b in hosts.values() if b is not a and any(_reaches(ep, lep) for lep in b.listen)]
             if not targets:
-                problems.append(doc.diag(("hosts", a.name, "connect", i), f"host {a.name!r} connects to {ep}, "
-                                         "where no declared host listens"))
+                problems.append(
+                    doc.diag(
+                        ("hosts", a.name, "connect", i),
+                        f"host {a.name!r} connects to {ep}, where no declared host listens",
+                    )
+                )
             for b in targets:
                 links[a.name].add(b)
                 links[b].add(a.name)
@@ -207,8 +263,14 @@ def _check_hosts(doc, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
             todo.extend(links[h] - seen)
     for h in hosts:
         if h not in seen and (hosts[h].listen or hosts[h].connect):
-            problems.append(doc.diag(("hosts", h), f"host {h!r} has no connect path to host {next(iter(hosts))!r} "
-                                     "(connect to an endpoint another host listens on)", key=True))
+            problems.append(
+                doc.diag(
+                    ("hosts", h),
+                    f"host {h!r} has no connect path to host {next(iter(hosts))!r} "
+                    "(connect to an endpoint another host listens on)",
+                    key=True,
+                )
+            )
 
 
 def check(spec: PipelineSpec, builtins: Mapping[str, str], problems: list[Diagnostic] | None = None) -> Pipeline:

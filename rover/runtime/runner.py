@@ -23,8 +23,8 @@ import zenoh
 from rover.errors import BadInput, OperatorFailed, PeerLost
 from rover.messages import ANY, Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, Source, Watermark
-from rover.runtime.scheduler import INF, EventTimeMerger
 from rover.pipeline.validation import Node, Pipeline
+from rover.runtime.scheduler import INF, EventTimeMerger
 from rover.transport import codec, keys
 from rover.transport.session import SessionSpec, open_session
 
@@ -51,6 +51,7 @@ class Stats:
     def line(self, name: str) -> str:
         def fmt(c: Counter) -> str:
             return ", ".join(f"{k}={v}" for k, v in sorted(c.items())) or "-"
+
         text = f"{name}: in {fmt(self.received)}; out {fmt(self.sent)}"
         if self.dropped:
             text += f"; DROPPED {fmt(self.dropped)}"
@@ -66,8 +67,11 @@ class Output:
         self.key = key
         self.typename = typename
         self.publisher = session.declare_publisher(
-            key, encoding=codec.encoding(typename), congestion_control=zenoh.CongestionControl.BLOCK,
-            reliability=zenoh.Reliability.RELIABLE)
+            key,
+            encoding=codec.encoding(typename),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
         self.last_ns: float = -INF
         self.mark_ns: int = -(2**63)
 
@@ -82,21 +86,32 @@ class Output:
     def heartbeat(self) -> None:
         """Send the promise on its own when this port has been silent for a while of event time."""
         if self.mark_ns - self.last_ns >= WATERMARK_INTERVAL_NS:
-            self.publisher.put(b"", encoding=codec.control_encoding(),
-                               attachment=codec.attachment(codec.Kind.WATERMARK, self.mark_ns, self.mark_ns))
+            self.publisher.put(
+                b"",
+                encoding=codec.control_encoding(),
+                attachment=codec.attachment(codec.Kind.WATERMARK, self.mark_ns, self.mark_ns),
+            )
             self.last_ns = self.mark_ns
 
     def end(self) -> None:
         last = int(self.last_ns) if self.last_ns != -INF else 0
-        self.publisher.put(b"", encoding=codec.control_encoding(),
-                           attachment=codec.attachment(codec.Kind.END, last, self.mark_ns))
+        self.publisher.put(
+            b"", encoding=codec.control_encoding(), attachment=codec.attachment(codec.Kind.END, last, self.mark_ns)
+        )
 
 
 class Task:
     """An operator (or source) running in its own thread."""
 
-    def __init__(self, node: Node, op: Operator, pipeline: str, session: zenoh.Session, stop: threading.Event,
-                 abort: threading.Event):
+    def __init__(
+        self,
+        node: Node,
+        op: Operator,
+        pipeline: str,
+        session: zenoh.Session,
+        stop: threading.Event,
+        abort: threading.Event,
+    ):
         self.node = node
         self.name = node.name
         self.op = op
@@ -105,8 +120,10 @@ class Task:
         self.abort = abort
         self.error: BaseException | None = None
         self.done = threading.Event()
-        self.outputs = {port: Output(session, keys.port_key(pipeline, node.name, port), out.type)
-                        for port, out in node.cls.outputs.items()}
+        self.outputs = {
+            port: Output(session, keys.port_key(pipeline, node.name, port), out.type)
+            for port, out in node.cls.outputs.items()
+        }
         self.thread = threading.Thread(target=self._main, name=f"rover-{node.name}", daemon=True)
 
     def _main(self) -> None:
@@ -134,8 +151,9 @@ class Task:
                 raise OperatorFailed(f"operator {self.name!r} emitted on unknown output {port!r}")
             typename = msg.typename if isinstance(msg, Raw) else getattr(msg, "__msgtype__", None)
             if typename != out.typename:
-                raise OperatorFailed(f"operator {self.name!r} emitted {typename} on output {port!r}, "
-                                     f"which is declared {out.typename}")
+                raise OperatorFailed(
+                    f"operator {self.name!r} emitted {typename} on output {port!r}, which is declared {out.typename}"
+                )
             if stamp is None:
                 stamp = stamp_ns(msg) if has_header(typename) else default_stamp
             if stamp < out.mark_ns:
@@ -175,16 +193,23 @@ class SourceTask(Task):
 
 
 class OperatorTask(Task):
-    def __init__(self, node: Node, op: Operator, pipeline: str, session: zenoh.Session, stop: threading.Event,
-                 abort: threading.Event):
+    def __init__(
+        self,
+        node: Node,
+        op: Operator,
+        pipeline: str,
+        session: zenoh.Session,
+        stop: threading.Event,
+        abort: threading.Event,
+    ):
         super().__init__(node, op, pipeline, session, stop, abort)
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.merger = EventTimeMerger(list(node.spec.inputs))
         self.ports = {port: node.cls.input_spec(port) for port in node.spec.inputs}
         self.subscribers = [
-            session.declare_subscriber(keys.port_key(pipeline, wire.source, wire.source_port),
-                                       self._enqueue_for(port))
-            for port, wire in node.spec.inputs.items()]
+            session.declare_subscriber(keys.port_key(pipeline, wire.source, wire.source_port), self._enqueue_for(port))
+            for port, wire in node.spec.inputs.items()
+        ]
 
     def _enqueue_for(self, port: str):
         inbox = self.inbox
@@ -192,6 +217,7 @@ class OperatorTask(Task):
         def enqueue(sample: zenoh.Sample) -> None:
             att = sample.attachment
             inbox.put((port, str(sample.encoding), sample.payload.to_bytes(), att.to_bytes() if att else None))
+
         return enqueue
 
     def _drop(self, port: str, reason: str) -> None:
@@ -266,8 +292,14 @@ class _ProgressBar:
         self.progress = None
         if self.sources and sys.stderr.isatty():
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
-            self.progress = Progress("[progress.description]{task.description}", BarColumn(),
-                                     MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
+
+            self.progress = Progress(
+                "[progress.description]{task.description}",
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeRemainingColumn(),
+                transient=True,
+            )
             self.ids = [self.progress.add_task("replay", total=s.progress()[1]) for s in self.sources]
 
     def update(self) -> None:
@@ -363,8 +395,9 @@ class Runner:
             exc = failed.error
             if isinstance(exc, (OperatorFailed, BadInput)):
                 raise exc
-            raise OperatorFailed(f"operator {failed.name!r} ({failed.node.spec.uses}) failed: "
-                                 f"{type(exc).__name__}: {exc}") from exc
+            raise OperatorFailed(
+                f"operator {failed.name!r} ({failed.node.spec.uses}) failed: {type(exc).__name__}: {exc}"
+            ) from exc
 
     def _run_with_hosts(self, session: zenoh.Session) -> None:
         """Start once every host has subscribed; leave once every host is done."""
@@ -433,6 +466,7 @@ class Runner:
 def run(pipeline: Pipeline, host: str | None = None) -> int:
     """Run a checked pipeline (all of it, or one host's share); return the exit status."""
     if host is not None and pipeline.spec.hosts and host not in pipeline.spec.hosts:
-        raise BadInput(f"{pipeline.spec.file}: --host {host!r} is not declared under hosts: "
-                       f"({', '.join(pipeline.spec.hosts)})")
+        raise BadInput(
+            f"{pipeline.spec.file}: --host {host!r} is not declared under hosts: ({', '.join(pipeline.spec.hosts)})"
+        )
     return Runner(pipeline, host).run()

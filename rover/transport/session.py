@@ -61,9 +61,12 @@ def open_session(spec: SessionSpec) -> zenoh.Session:
         text = str(exc)
         busy = _busy_listen_endpoint(spec.listen)
         if busy or "listener" in text.lower():
-            raise TransportError(f"host {spec.label}: cannot listen on {busy or ', '.join(spec.listen)}: "
-                                 "address in use or not available") from None
+            raise TransportError(
+                f"host {spec.label}: cannot listen on {busy or ', '.join(spec.listen)}: address in use or not available"
+            ) from None
         if "connect" in text.lower():
-            raise TransportError(f"host {spec.label}: cannot reach {', '.join(spec.connect)} within "
-                                 f"{spec.connect_timeout_s:g} s (is the other host running and listening?)") from None
+            raise TransportError(
+                f"host {spec.label}: cannot reach {', '.join(spec.connect)} within "
+                f"{spec.connect_timeout_s:g} s (is the other host running and listening?)"
+            ) from None
         raise TransportError(f"host {spec.label}: cannot open a Zenoh session: {text.split(' at /')[0]}") from None
