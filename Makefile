@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export ROVER_TEST_DATA ?= $(abspath ../shared/data)
 
-.PHONY: demo test bench check clean
+.PHONY: demo test lint bench check clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -18,7 +18,14 @@ $(STAMP): pyproject.toml | $(BIN)/python
 demo: $(STAMP)
 	$(BIN)/python -m rover.cli.demo
 
-test: $(STAMP)
+# ruff, then mypy through tools/typecheck.py (a link tree of the package in build/typecheck: mypy follows
+# neither the editable install nor pyproject's package-dir); strict on the core, see [tool.mypy] in pyproject.toml.
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/python tools/typecheck.py
+
+test: lint
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
