@@ -14,32 +14,35 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from mcap.reader import make_reader
 
 from rover.datasets.convert import convert
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
+from rover.formats.bag import BagReader
 from rover.formats.intel5300 import decode_bfee
-from rover.formats.rig import rig_from_text
+from rover.formats.rig import Rig, rig_from_text
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
+from rover.geometry import wrap_angle
 from rover.messages import deserialize, make
 from rover.operators.aoa.operator import Aoa
+from rover.testing import run_operator
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def load(path: Path):
-    with path.open("rb") as f:
-        reader = make_reader(f)
-        meta = {m.name: m.metadata for m in reader.iter_metadata()}
-        frames, truth = [], {}
-        for _s, channel, m in reader.iter_messages(topics=["/csi", "/groundtruth/aoa"]):
-            if channel.topic == "/csi":
+def load(path: Path) -> tuple[Rig, list[Any], dict[int, float]]:
+    frames: list[Any] = []
+    truth: dict[int, float] = {}
+    with BagReader(path) as reader:
+        meta = reader.metadata()
+        for m in reader.messages(["/csi", "/groundtruth/aoa"]):
+            if m.topic == "/csi":
                 frames.append(deserialize(m.data, "rover_msgs/msg/CsiFrame"))
             else:
-                truth[m.log_time] = deserialize(m.data, "rover_msgs/msg/Aoa").angle_rad
+                truth[m.log_time_ns] = deserialize(m.data, "rover_msgs/msg/Aoa").angle_rad
     return rig_from_text(meta["rover.setup"]["yaml"]), frames, truth
 
 
@@ -52,11 +55,11 @@ def bartlett(csi: np.ndarray, channel: int, rig) -> float:
     return float(grid[np.argmax(np.abs(np.einsum("fgm,pfm->pfg", steer.conj(), h)).sum(axis=(0, 1)))])
 
 
-def evaluate(rig, frames, truth: dict[int, float], nlos: set[int]) -> dict:
+def evaluate(
+    rig: Rig, frames: list[Any], truth: dict[int, float], nlos: set[int]
+) -> tuple[dict[str, float], dict[str, list[float]]]:
     records = decode_bfee([bytes(fr.bfee) for fr in frames])
     owner = {t.channel: t.id for t in rig.tags}
-    op = Aoa()
-    list(op.on_input("setup", make("rover_msgs/msg/RigSetup", setup_yaml=rig.text), 0))
     messages = []
     for k, fr in enumerate(frames):
         c = records.csi[k, :, :3, :1]
@@ -72,21 +75,19 @@ def evaluate(rig, frames, truth: dict[int, float], nlos: set[int]) -> dict:
                 csi_imag=c.imag.astype(np.float32).ravel(),
             )
         )
+    op, setup = Aoa(), make("rover_msgs/msg/RigSetup", setup_yaml=rig.text)
     start = time.process_time()
-    out = []
-    for msg in messages:
-        out += [e.msg for e in op.on_input("csi", msg, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)]
-    out += [e.msg for e in op.on_end()]
+    out = [e.msg for e in run_operator(op, {"setup": [setup], "csi": messages})]
     cpu_s = time.process_time() - start
     stamps = np.array(sorted(truth))
     values = np.array([truth[s] for s in stamps])
     by_stamp = {fr.header.stamp.sec * 10**9 + fr.header.stamp.nanosec: k for k, fr in enumerate(frames)}
-    errors = {"los": [], "nlos": [], "bartlett_los": [], "bartlett_nlos": [], "z": []}
+    errors: dict[str, list[float]] = {"los": [], "nlos": [], "bartlett_los": [], "bartlett_nlos": [], "z": []}
     for aoa in out:
         stamp = aoa.header.stamp.sec * 10**9 + aoa.header.stamp.nanosec
         true = values[min(np.searchsorted(stamps, stamp), len(stamps) - 1)]
         kind = "nlos" if aoa.tag_id in nlos else "los"
-        error = math.degrees(abs(np.angle(np.exp(1j * (aoa.angle_rad - true)))))
+        error = math.degrees(abs(wrap_angle(aoa.angle_rad - true)))
         errors[kind].append(error)
         errors["z"].append(error / math.degrees(aoa.std_rad))
         k = by_stamp[stamp]
@@ -97,8 +98,8 @@ def evaluate(rig, frames, truth: dict[int, float], nlos: set[int]) -> dict:
             and abs(frames[j].header.stamp.sec * 10**9 + frames[j].header.stamp.nanosec - stamp) < 4e7
         ]
         b = bartlett(records.csi[burst, :, :3, 0], aoa.channel, rig)
-        errors[f"bartlett_{kind}"].append(math.degrees(abs(np.angle(np.exp(1j * (b - true))))))
-    figures = {"bursts": len(out), "packets_per_cpu_s": len(frames) / cpu_s}
+        errors[f"bartlett_{kind}"].append(math.degrees(abs(wrap_angle(b - true))))
+    figures: dict[str, float] = {"bursts": len(out), "packets_per_cpu_s": len(frames) / cpu_s}
     for key, e in errors.items():
         if e and key != "z":
             figures[f"{key}_median_deg"] = float(np.median(e))
@@ -118,9 +119,9 @@ def plot_cdf(curves: dict[str, list[float]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    for label, e in curves.items():
-        if e:
-            e = np.sort(e)
+    for label, errors in curves.items():
+        if errors:
+            e = np.sort(errors)
             ax.plot(
                 e,
                 np.arange(1, len(e) + 1) / len(e),

@@ -49,8 +49,8 @@ def main() -> None:
     ap.add_argument("--json")
     args = ap.parse_args()
     figures: dict = {"messages": args.messages}
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
         write_bag(tmp / "bag", args.messages)
         (tmp / "setup.yaml").write_text(SETUP)
         start = time.perf_counter()

@@ -27,8 +27,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json")
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
         dataset = tmp / "paper.mcap"
         subprocess.run(
             [*ROVER, "simulate", "--scenario", "paper", "--seed", str(args.seed), "-o", str(dataset)], check=True
@@ -82,8 +82,8 @@ def main() -> int:
         f"trajectory.tum and tags.csv identical: {same}"
     )
     print(
-        f"errors: robot mean {figures['robot_mean_m'] * 100:.1f} cm, LOS tags {figures['los_tags_mean_m'] * 100:.1f} cm, "
-        f"NLOS tag {figures['nlos_tags_mean_m'] * 100:.1f} cm"
+        f"errors: robot mean {figures['robot_mean_m'] * 100:.1f} cm, "
+        f"LOS tags {figures['los_tags_mean_m'] * 100:.1f} cm, NLOS tag {figures['nlos_tags_mean_m'] * 100:.1f} cm"
     )
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))

@@ -61,8 +61,8 @@ def main() -> None:
     ap.add_argument("--messages", type=int, default=100_000)
     ap.add_argument("--json")
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
         dataset = tmp / "imu.mcap"
         write_dataset(dataset, args.messages)
         pipeline = tmp / "bench.yaml"

@@ -43,7 +43,10 @@ def main() -> int:
         for scenario, seed in cases:
             rows.append(run_case(Path(tmp), scenario, seed))
     base = rows[0]
-    cm = lambda v: "-" if v is None else f"{v * 100:.1f} cm"
+
+    def cm(v: float | None) -> str:
+        return "-" if v is None else f"{v * 100:.1f} cm"
+
     print(f"{'case':<18}{'robot':>10}{'aligned':>10}{'LOS tags':>10}{'NLOS':>10}  worst ratio to paper seed 1")
     for r in rows:
         ratios = [

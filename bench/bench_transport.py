@@ -53,7 +53,8 @@ def peer(port: int, n: int, decode: bool) -> None:
         )
 
         def on_data(sample: zenoh.Sample) -> None:
-            codec.read_attachment(sample.attachment.to_bytes())
+            att = sample.attachment
+            codec.read_attachment(att.to_bytes() if att is not None else None)
             payload = sample.payload.to_bytes()
             if decode:
                 deserialize(payload, codec.schema_of(str(sample.encoding)))
@@ -62,7 +63,7 @@ def peer(port: int, n: int, decode: bool) -> None:
                 done.set()
 
         def on_ping(sample: zenoh.Sample) -> None:
-            pong.put(sample.payload.to_bytes(), attachment=sample.attachment.to_bytes())
+            pong.put(sample.payload.to_bytes(), attachment=sample.attachment)
 
         data_sub = session.declare_subscriber(DATA_KEY, on_data)
         ping_sub = session.declare_subscriber(PING_KEY, on_ping)
@@ -145,6 +146,7 @@ def measure(n_messages: int, n_pings: int, decode: bool) -> dict:
         for i, m in enumerate(messages):
             pub.put(serialize(m, IMU), attachment=codec.attachment(codec.Kind.DATA, i, i))
         sent_s = time.perf_counter() - start
+        assert child.stdout is not None  # stdout=PIPE
         report = json.loads(child.stdout.readline())
         child.wait(timeout=30)
 

@@ -44,8 +44,8 @@ def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
     """Summary line and warnings of one pipeline or setup file; raises on problems."""
     from rover.formats.rig import parse_rig
     from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, max_tags
-    from rover.pipeline.spec import read_document
-    from rover.pipeline.validation import check, parse
+    from rover.pipeline.spec import parse, read_document
+    from rover.pipeline.validation import check
 
     doc = read_document(file)
     if (
@@ -193,7 +193,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _add_set(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="set a ${NAME} variable of the pipeline")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="NAME=VALUE",
+        help="set a ${NAME} variable of the pipeline, or OPERATOR.PARAM (e.g. slam.wheel=false) "
+        "typed and checked like the file's own params",
+    )
 
 
 def parser() -> argparse.ArgumentParser:

@@ -12,6 +12,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.table import Table
@@ -37,8 +38,10 @@ def cached_dataset(seed: int, console: Console) -> Path:
     return path
 
 
-def report(metrics: dict, console: Console) -> None:
-    cm = lambda v: "-" if v is None else f"{v * 100:.1f} cm"
+def report(metrics: dict[str, Any], console: Console) -> None:
+    def cm(v: float | None) -> str:
+        return "-" if v is None else f"{v * 100:.1f} cm"
+
     table = Table(title="Rover on the paper's scenario (simulated), beside the paper")
     for column in ("", "Rover", "paper (Zhang et al.)"):
         table.add_column(column, justify="right" if column else "left")

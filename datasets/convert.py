@@ -25,10 +25,10 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 
 import rover
 from rover.errors import BadInput, SpecError
-from rover.formats.bag import BagWriter
+from rover.formats.bag import BagWriter, iter_messages
 from rover.formats.rig import Rig, load_rig
 from rover.formats.truth import read_tags_csv, read_tum
-from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
+from rover.messages import Raw, cdr_stamp_ns, deserialize, header, make, serialize
 
 log = logging.getLogger("rover.convert")
 
@@ -105,6 +105,7 @@ def _choose_topics(reader: AnyReader, rig: Rig, overrides: dict[str, str]) -> di
     listing = ", ".join(f"{t} ({m})" for t, m in sorted(by_topic.items())) or "none"
     chosen: dict[str, str | None] = {}
     for role, msgtype in ROLES.items():
+        topic: str | None
         if role in overrides:
             topic = overrides[role]
         elif role in rig.topics and (rig.topics[role] is None or rig.topics[role] in by_topic):
@@ -190,9 +191,11 @@ class _Imu:
             log.warning("the IMU reports acceleration in g (|a| = %.2f at rest): converted to m/s^2", np.median(norms))
 
     def _scaled(self, payload: bytes, accel: tuple[float, ...]) -> Raw:
-        if self.scale != 1.0:
+        scale = self.scale
+        assert scale is not None, "decided before any sample leaves"
+        if scale != 1.0:
             data = bytearray(payload)
-            _F64x3.pack_into(data, _imu_vectors_at(payload)[1], *(v * self.scale for v in accel))
+            _F64x3.pack_into(data, _imu_vectors_at(payload)[1], *(v * scale for v in accel))
             payload = bytes(data)
         return Raw(ROLES["imu"], payload)
 
@@ -395,7 +398,7 @@ def _truth_messages(truth: str | Path | None, tags: str | Path | None, first_ns:
         yield first_ns, array
     if truth:
         trajectory = read_tum(truth)
-        for stamp, xyz, q in zip(trajectory.stamp_ns.tolist(), trajectory.xyz, trajectory.quat_xyzw):
+        for stamp, xyz, q in zip(trajectory.stamp_ns.tolist(), trajectory.xyz, trajectory.quat_xyzw, strict=True):
             pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp, "world"))
             p, o = pose.pose.position, pose.pose.orientation
             p.x, p.y, p.z = (float(v) for v in xyz)
@@ -405,22 +408,13 @@ def _truth_messages(truth: str | Path | None, tags: str | Path | None, first_ns:
 
 def _truth_from_dataset(path: Path, with_tags: bool):
     """The ground truth of another dataset (e.g. the simulated run a recording was made from)."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    from rover.messages import deserialize
-
     topics = {TRUTH_POSE: "geometry_msgs/msg/PoseStamped"}
     if with_tags:
         topics[TRUTH_TAGS] = "rover_msgs/msg/TagArray"
-    try:
-        with path.open("rb") as f:
-            found = [
-                (m.log_time, deserialize(m.data, topics[c.topic]))
-                for _s, c, m in make_reader(f).iter_messages(topics=list(topics))
-            ]
-    except (McapError, OSError, ValueError) as exc:
-        raise BadInput(f"{path}: not a readable dataset: {exc}") from None
+    found = [
+        (m.log_time_ns, deserialize(m.data, topics[m.topic]))
+        for m in iter_messages(path, topics, failure="not a readable dataset")
+    ]
     if not found:
         raise BadInput(f"{path}: has no {TRUTH_POSE} to use as ground truth")
     yield from found

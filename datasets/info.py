@@ -8,10 +8,9 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 
 from rover.errors import BadInput
+from rover.formats.bag import BagReader
 from rover.messages import deserialize
 
 SETUP_METADATA = "rover.setup"
@@ -65,34 +64,25 @@ def dataset_info(path: str | Path, csi_topic: str = "/csi") -> DatasetInfo:
         path = files[0]
     if not path.is_file():
         raise BadInput(f"{path}: no such dataset file")
-    try:
-        with path.open("rb") as f:
-            reader = make_reader(f)
-            summary = reader.get_summary()
-            if summary is None or summary.statistics is None:
-                raise BadInput(f"{path}: MCAP file has no summary (was it closed properly?)")
-            stats = summary.statistics
-            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-            per_channel: Counter = Counter()
-            if any(c.topic == csi_topic for c in summary.channels.values()):
-                for _s, _c, message in reader.iter_messages(topics=[csi_topic], log_time_order=False):
-                    per_channel[int(deserialize(message.data, "rover_msgs/msg/CsiFrame").channel)] += 1
-    except (McapError, OSError, ValueError, EOFError) as exc:
-        raise BadInput(f"{path}: not a readable MCAP dataset: {exc}") from None
-    duration_s = (stats.message_end_time - stats.message_start_time) / 1e9 if stats.message_count else 0.0
+    with BagReader(path, "not a readable MCAP dataset") as bag:
+        summary = bag.summary()
+        if summary is None or summary.statistics is None:
+            raise BadInput(f"{path}: MCAP file has no summary (was it closed properly?)")
+        stats = summary.statistics
+        metadata = bag.metadata()
+        per_channel: Counter[int] = Counter()
+        if any(c.topic == csi_topic for c in summary.channels):
+            for message in bag.messages([csi_topic], log_time_order=False):
+                per_channel[int(deserialize(message.data, "rover_msgs/msg/CsiFrame").channel)] += 1
+    duration_s = (stats.end_ns - stats.start_ns) / 1e9 if stats.message_count else 0.0
     topics = []
-    for channel in sorted(summary.channels.values(), key=lambda c: c.topic):
-        schema = summary.schemas.get(channel.schema_id)
-        count = stats.channel_message_counts.get(channel.id, 0)
-        topics.append(
-            TopicInfo(
-                channel.topic, schema.name if schema else "", count, count / duration_s if duration_s > 0 else 0.0
-            )
-        )
+    for channel in sorted(summary.channels, key=lambda c: c.topic):
+        rate_hz = channel.count / duration_s if duration_s > 0 else 0.0
+        topics.append(TopicInfo(channel.topic, channel.schema, channel.count, rate_hz))
     return DatasetInfo(
         str(path),
-        stats.message_start_time,
-        stats.message_end_time,
+        stats.start_ns,
+        stats.end_ns,
         duration_s,
         stats.message_count,
         topics,

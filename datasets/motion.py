@@ -40,7 +40,7 @@ class Motion:
     def __init__(self, spec: Trajectory):
         self.segments: list[Segment] = []
         t = 0.0
-        pos = tuple(spec.start_m)
+        pos = (spec.start_m[0], spec.start_m[1])
         heading = math.radians(spec.heading_deg)
         if spec.stationary_s > 0:
             self.segments.append(Segment(t, spec.stationary_s, "still", pos, heading))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCARRIERS_20MHZ, channel_freq_hz
+from rover.geometry import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -91,7 +92,7 @@ def true_aoa(tag: np.ndarray, robot_xy: np.ndarray, robot_yaw: np.ndarray) -> np
     """Direct-path angle of arrival in the robot frame, CCW from forward, in (-pi, pi]."""
     d = tag[None, :] - robot_xy
     angle = np.arctan2(d[:, 1], d[:, 0]) - robot_yaw
-    return np.angle(np.exp(1j * angle))
+    return wrap_angle(angle)
 
 
 @dataclass(frozen=True)

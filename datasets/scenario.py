@@ -11,14 +11,15 @@ from typing import Any
 
 from rover.errors import BadInput, Diagnostic, SpecError
 from rover.pipeline import params as P
+from rover.pipeline.params import Fraction, NonNegativeFloat, PositiveFloat, PositiveInt
 from rover.pipeline.spec import did_you_mean
 from rover.pipeline.yamlpos import Located, load, parse_scalar
 
 
 @dataclass(frozen=True)
 class Room:
-    size_m: tuple[float, float] = (9.0, 5.0)
-    wall_reflection: float = 0.5
+    size_m: tuple[PositiveFloat, PositiveFloat] = (9.0, 5.0)
+    wall_reflection: Fraction = 0.5
 
 
 @dataclass(frozen=True)
@@ -38,16 +39,16 @@ class SimTag:
 @dataclass(frozen=True)
 class Receiver:
     array: typing.Literal["triangle", "linear", "positions"] = "triangle"
-    spacing_wavelengths: float = 0.5
+    spacing_wavelengths: PositiveFloat = 0.5
     antenna_positions_m: list[tuple[float, float]] = field(default_factory=list)
-    range_m: float = 5.0
-    packet_rate_hz: float = 150.0
-    dwell_s: float = 0.05
-    hop_gap_s: float = 0.005
+    range_m: PositiveFloat = 5.0
+    packet_rate_hz: PositiveFloat = 150.0
+    dwell_s: PositiveFloat = 0.05
+    hop_gap_s: NonNegativeFloat = 0.005
     latency_ms: tuple[float, float] = (0.3, 0.5)
     snr_db: tuple[float, float] = (20.0, 30.0)
     phase_offsets_rad: list[float] = field(default_factory=lambda: [0.0, 0.9, -1.7])
-    calibration_error_deg: float = 3.0
+    calibration_error_deg: NonNegativeFloat = 3.0
     sampling_offset_ns: tuple[float, float] = (0.0, 100.0)
     nlos_attenuation_db: tuple[float, float] = (10.0, 15.0)
     agc_peak: tuple[float, float] = (40.0, 90.0)
@@ -58,31 +59,31 @@ class Trajectory:
     start_m: tuple[float, float] = (1.0, 0.755)
     heading_deg: float = 0.0
     waypoints_m: list[tuple[float, float]] = field(default_factory=list)
-    laps: int = 1
-    speed_m_s: float = 0.3
-    ramp_s: float = 1.0
-    turn_rate_deg_s: float = 45.0
-    stationary_s: float = 3.0
+    laps: PositiveInt = 1
+    speed_m_s: PositiveFloat = 0.3
+    ramp_s: NonNegativeFloat = 1.0
+    turn_rate_deg_s: PositiveFloat = 45.0
+    stationary_s: NonNegativeFloat = 3.0
 
 
 @dataclass(frozen=True)
 class Imu:
-    rate_hz: float = 200.0
-    gyro_noise_deg_s_rthz: float = 0.005
-    gyro_bias_deg_s: float = 0.02
-    gyro_bias_walk_deg_s_rts: float = 0.0005
-    accel_noise_ug_rthz: float = 100.0
-    accel_bias_mg: float = 2.0
-    accel_bias_walk_mg_rts: float = 0.004
+    rate_hz: PositiveFloat = 200.0
+    gyro_noise_deg_s_rthz: NonNegativeFloat = 0.005
+    gyro_bias_deg_s: NonNegativeFloat = 0.02
+    gyro_bias_walk_deg_s_rts: NonNegativeFloat = 0.0005
+    accel_noise_ug_rthz: NonNegativeFloat = 100.0
+    accel_bias_mg: NonNegativeFloat = 2.0
+    accel_bias_walk_mg_rts: NonNegativeFloat = 0.004
 
 
 @dataclass(frozen=True)
 class Odometry:
     enabled: bool = True
-    rate_hz: float = 20.0
-    scale_error: float = 0.02
-    heading_drift_deg_s: float = 0.1
-    speed_noise_m_s: float = 0.005
+    rate_hz: PositiveFloat = 20.0
+    scale_error: NonNegativeFloat = 0.02
+    heading_drift_deg_s: NonNegativeFloat = 0.1
+    speed_noise_m_s: NonNegativeFloat = 0.005
 
 
 @dataclass(frozen=True)

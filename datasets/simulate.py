@@ -8,6 +8,7 @@ import math
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -21,6 +22,7 @@ from rover.errors import BadInput
 from rover.formats.bag import BagWriter
 from rover.formats.intel5300 import RecordHeader, encode_record
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
+from rover.geometry import quaternion_from_yaw, wrap_angle
 from rover.messages import header, make
 
 T0_NS = 1_700_000_000_000_000_000
@@ -97,7 +99,7 @@ class _World:
         return (np.asarray(xy) - self.start) @ self.rotation.T
 
     def yaw(self, yaw: np.ndarray) -> np.ndarray:
-        return np.angle(np.exp(1j * (yaw - self.heading)))
+        return wrap_angle(yaw - self.heading)
 
 
 def simulate(
@@ -135,7 +137,7 @@ def simulate(
     true_t, owner = true_t[order], owner[order]
     state = motion.state(true_t)
     ap = np.array(scenario.access_point.position_m, dtype=np.float64)
-    room = tuple(scenario.room.size_m)
+    room = (scenario.room.size_m[0], scenario.room.size_m[1])
     heard = np.zeros(len(true_t), dtype=bool)
     csi = np.zeros((len(true_t), 30, len(antennas)), dtype=np.complex128)
     for i, tag in enumerate(scenario.tags):
@@ -221,7 +223,10 @@ def simulate(
     imu_t = np.arange(0.0, duration, 1.0 / scenario.imu.rate_hz)
     imu_state = motion.state(imu_t)
     imu = imu_samples(imu_state, scenario.imu, rng)
-    vec = lambda v: make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+    def vec(v: np.ndarray) -> Any:
+        return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
     no_orientation = np.zeros(9)
     no_orientation[0] = -1.0
     for k, t in enumerate(imu_t):
@@ -241,12 +246,12 @@ def simulate(
         odom_t = np.arange(0.0, duration, 1.0 / scenario.odometry.rate_hz)
         odom_state = motion.state(odom_t)
         odom = odometry_samples(odom_state, odom_t, scenario.odometry, rng)
+        _, _, odom_qz, odom_qw = quaternion_from_yaw(odom.yaw)
         for k, t in enumerate(odom_t):
             stamp = T0_NS + int(round(t * 1e9))
             msg = make("nav_msgs/msg/Odometry", header=header(stamp, "odom"), child_frame_id="base_link")
             msg.pose.pose.position.x, msg.pose.pose.position.y = float(odom.xy[k, 0]), float(odom.xy[k, 1])
-            msg.pose.pose.orientation.z = math.sin(odom.yaw[k] / 2)
-            msg.pose.pose.orientation.w = math.cos(odom.yaw[k] / 2)
+            msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = float(odom_qz[k]), float(odom_qw[k])
             msg.twist.twist.linear.x = float(odom.speed[k])
             msg.twist.twist.angular.z = float(odom.yaw_rate[k])
             add(stamp, "/odom", msg)
@@ -254,11 +259,12 @@ def simulate(
     truth_t = np.arange(0.0, duration, 1.0 / TRUTH_RATE_HZ)
     truth_state = motion.state(truth_t)
     xy, yaw = world.point(truth_state.xy), world.yaw(truth_state.yaw)
+    _, _, qz, qw = quaternion_from_yaw(yaw)
     for k, t in enumerate(truth_t):
         stamp = T0_NS + int(round(t * 1e9))
         pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp, "world"))
         pose.pose.position.x, pose.pose.position.y = float(xy[k, 0]), float(xy[k, 1])
-        pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw[k] / 2), math.cos(yaw[k] / 2)
+        pose.pose.orientation.z, pose.pose.orientation.w = float(qz[k]), float(qw[k])
         add(stamp, "/groundtruth/pose", pose)
     tag_world = {t.id: world.point(np.array(t.position_m)) for t in scenario.tags}
     add(

@@ -19,21 +19,22 @@ from rover.errors import BadInput, SpecError
 from rover.formats.rig import load_rig
 from rover.messages import header, make
 from rover.operator import Emit, Out, Source, Watermark
+from rover.pipeline.params import Checked, NonNegativeInt, PositiveFloat
 
 log = logging.getLogger("rover.channel_hop")
 DEFAULT_COMMAND = "iw dev {interface} set channel {channel} HT20"
 
 
 @dataclass(frozen=True)
-class HopParams:
+class HopParams(Checked):
     setup: str = ""
     """setup.yaml giving the tags' channels and the interface; or give `channels`."""
     channels: list[int] = field(default_factory=list)
     interface: str = ""
-    dwell_s: float = 0.05
+    dwell_s: PositiveFloat = 0.05
     command: str = DEFAULT_COMMAND
     dry_run: bool = False
-    rounds: int = 0
+    rounds: NonNegativeInt = 0
     """Sweeps to make before ending; 0 = until stopped."""
 
 
@@ -69,8 +70,6 @@ class ChannelHop(Source):
             interface = interface or rig.interface
         if not channels:
             raise BadInput("channel_hop: no channels to visit (give params.setup or params.channels)")
-        if not p.dwell_s > 0:
-            raise BadInput(f"channel_hop: dwell_s must be positive, got {p.dwell_s}")
         try:
             self.commands = [
                 shlex.split(p.command.format(interface=interface or "wlan0", channel=ch)) for ch in channels
@@ -88,7 +87,7 @@ class ChannelHop(Source):
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         rounds = 0
         while not stop.is_set() and (self.params.rounds == 0 or rounds < self.params.rounds):
-            for channel, argv in zip(self.channels, self.commands):
+            for channel, argv in zip(self.channels, self.commands, strict=True):
                 self.runner(argv)
                 now = time.time_ns()
                 yield Emit(

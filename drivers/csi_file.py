@@ -7,7 +7,6 @@ time they were read, the host receive time of this source: the NIC's timestamp_l
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections.abc import Iterator
@@ -20,19 +19,19 @@ from rover.errors import BadInput
 from rover.formats.intel5300 import StreamDecoder
 from rover.messages import header, make
 from rover.operator import Emit, Out, Source, Watermark
+from rover.pipeline.params import Checked, NonNegativeInt, PositiveFloat
 
-log = logging.getLogger("rover.csi_file")
 CHUNK_BYTES = 1 << 16
 
 
 @dataclass(frozen=True)
-class CsiFileParams:
+class CsiFileParams(Checked):
     path: str = ""
     follow: bool = False
     """Keep reading as the file grows (like `tail -f`) until the run is stopped."""
-    channel: int = 0
+    channel: NonNegativeInt = 0
     """The channel the log was recorded on, or 0 when `channel_hop` announces the hops."""
-    poll_s: float = 0.05
+    poll_s: PositiveFloat = 0.05
 
 
 class CsiFile(Source):
@@ -62,20 +61,23 @@ class CsiFile(Source):
                 yield Watermark(time.time_ns())
                 stop.wait(self.params.poll_s)
                 continue
-            for record in self.stream.records(chunk):
+            for record in self._records(chunk):
                 yield self._frame(record)
-        for record in self.stream.records(b"", final=True):
+        for record in self._records(b"", final=True):
             yield self._frame(record)
+
+    def _records(self, chunk: bytes, final: bool = False) -> list[bytes]:
+        """The records `chunk` completes; what the decoder skipped on the way counts as dropped at once,
+        so a run stopped while following the file still reports it."""
+        records = self.stream.records(chunk, final)
         s = self.stream
-        if s.n_skipped or s.n_corrupt or s.n_garbage_bytes:
-            log.warning(
-                "csi_file: %s: %d records with other codes skipped, %d corrupt records dropped, "
-                "%d bytes of garbage skipped",
-                self.path,
-                s.n_skipped,
-                s.n_corrupt,
-                s.n_garbage_bytes,
-            )
+        for reason, total in (
+            (f"records with other codes in {self.path}", s.n_skipped),
+            (f"corrupt records in {self.path}", s.n_corrupt),
+            (f"bytes of garbage in {self.path}", s.n_garbage_bytes),
+        ):
+            self.drop(reason, total - self.drops[reason])
+        return records
 
     def _frame(self, record: bytes) -> Emit:
         self.count += 1

@@ -22,6 +22,7 @@ import numpy as np
 from rover.errors import BadInput
 from rover.messages import header, make
 from rover.operator import Emit, Out, Source, Watermark
+from rover.pipeline.params import Checked, NonNegativeInt
 
 log = logging.getLogger("rover.csi_netlink")
 
@@ -78,8 +79,8 @@ def open_connector() -> socket.socket:
 
 
 @dataclass(frozen=True)
-class NetlinkParams:
-    channel: int = 0
+class NetlinkParams(Checked):
+    channel: NonNegativeInt = 0
     """The channel the NIC is tuned to, or 0 when `channel_hop` announces the hops."""
     log: str = ""
     """Also write the raw records to this file, in the CSI Tool's log format."""
@@ -95,11 +96,10 @@ class CsiNetlink(Source):
         super().__init__(params)
         self.sock = connect()
         self.sock.settimeout(POLL_S)
-        self.bad = 0
         self._log = None
         if self.params.log:
             try:
-                self._log = open(self.params.log, "wb")
+                self._log = open(self.params.log, "wb")  # noqa: SIM115 - open until close()
             except OSError as exc:
                 self.sock.close()
                 raise BadInput(f"{self.params.log}: cannot write: {exc.strerror or exc}") from None
@@ -119,9 +119,8 @@ class CsiNetlink(Source):
             try:
                 record = parse_datagram(datagram)
             except NetlinkFormatError as exc:
-                self.bad += 1
-                if self.bad == 1 or self.bad % 1000 == 0:
-                    log.warning("csi_netlink: %d datagram(s) dropped: %s", self.bad, exc)
+                self.drop("datagrams that are not CSI Tool records")
+                log.debug("csi_netlink: dropped a datagram: %s", exc)
                 continue
             if self._log is not None:
                 self._log.write(struct.pack(">H", len(record)) + record)

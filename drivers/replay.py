@@ -15,24 +15,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-
 from rover.errors import BadInput, SpecError
+from rover.formats.bag import BagReader
 from rover.formats.rig import load_rig
 from rover.messages import Raw, header, message_class
 from rover.operator import Emit, Out, Source, Watermark
+from rover.pipeline.params import Checked, PositiveFloat
 
 log = logging.getLogger("rover.dataset_replay")
 
 SETUP_METADATA = "rover.setup"
 DEFAULT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
+READ_FAILURE = "not a readable MCAP dataset"
 
 
 @dataclass(frozen=True)
-class ReplayParams:
+class ReplayParams(Checked):
     path: str = ""
-    speed: Literal["max"] | float = "max"
+    speed: Literal["max"] | PositiveFloat = "max"
     topics: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TOPICS))
     setup: str = ""
     """A setup.yaml to send instead of the dataset's own rig description (or when it has none)."""
@@ -57,8 +57,6 @@ class DatasetReplay(Source):
         self.path = Path(p.path)
         if not self.path.is_file():
             raise BadInput(f"{self.path}: no such dataset file")
-        if p.speed != "max" and not p.speed > 0:
-            raise BadInput(f"dataset_replay: speed must be 'max' or a positive number, got {p.speed!r}")
         for port in p.topics:
             if port not in self.outputs or port == "setup":
                 raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, imu, odom)")
@@ -76,29 +74,23 @@ class DatasetReplay(Source):
 
     def _inspect(self) -> tuple[str | None, dict[str, str], int]:
         """Read the summary: which wanted topics exist with the right types, and the rig description."""
-        try:
-            with self.path.open("rb") as f:
-                reader = make_reader(f)
-                summary = reader.get_summary()
-                metadata = {m.name: m.metadata for m in reader.iter_metadata()}
-        except (McapError, OSError, ValueError, EOFError) as exc:
-            raise BadInput(f"{self.path}: not a readable MCAP dataset: {exc}") from None
+        with BagReader(self.path, READ_FAILURE) as bag:
+            summary = bag.summary()
+            metadata = bag.metadata()
         if summary is None:
             raise BadInput(f"{self.path}: MCAP file has no summary section (was it closed properly?)")
         found: dict[str, str] = {}
         total = 0
-        counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        for channel in summary.channels.values():
+        for channel in summary.channels:
             port = self._port_of.get(channel.topic)
             if port is None:
                 continue
-            schema = summary.schemas.get(channel.schema_id)
             wanted = self.outputs[port].type
-            if schema is None or schema.name != wanted or channel.message_encoding != "cdr":
-                got = f"{schema.name if schema else 'no schema'} ({channel.message_encoding})"
+            if channel.schema != wanted or channel.encoding != "cdr":
+                got = f"{channel.schema or 'no schema'} ({channel.encoding})"
                 raise BadInput(f"{self.path}: topic {channel.topic} is {got}, expected {wanted} (cdr)")
             found[channel.topic] = port
-            total += counts.get(channel.id, 0)
+            total += channel.count
         setup = metadata.get(SETUP_METADATA, {}).get("yaml")
         return setup, found, total
 
@@ -109,24 +101,23 @@ class DatasetReplay(Source):
         speed = self.params.speed
         RigSetup = message_class("rover_msgs/msg/RigSetup")
         started_wall = started_log = None
-        with self.path.open("rb") as f:
-            reader = make_reader(f)
-            for _schema, channel, message in reader.iter_messages(topics=list(self._channels), log_time_order=True):
+        with BagReader(self.path, READ_FAILURE) as bag:
+            for message in bag.messages(self._channels, log_time_order=True):
                 if stop.is_set():
                     return
                 if started_log is None:
-                    started_log, started_wall = message.log_time, time.monotonic()
+                    started_log, started_wall = message.log_time_ns, time.monotonic()
                     if self._setup_yaml is not None:
                         yield Emit(
                             "setup",
-                            RigSetup(header=header(message.log_time, "base_link"), setup_yaml=self._setup_yaml),
-                            message.log_time,
+                            RigSetup(header=header(message.log_time_ns, "base_link"), setup_yaml=self._setup_yaml),
+                            message.log_time_ns,
                         )
                 elif speed != "max":
-                    due = started_wall + (message.log_time - started_log) / 1e9 / speed
+                    due = started_wall + (message.log_time_ns - started_log) / 1e9 / speed
                     while (wait := due - time.monotonic()) > 0:
                         if stop.wait(min(wait, 0.1)):
                             return
-                port = self._channels[channel.topic]
+                port = self._channels[message.topic]
                 self._done += 1
                 yield Emit(port, Raw(self.outputs[port].type, message.data))

@@ -148,14 +148,19 @@ class RunOutputs(Operator):
             return
         out = Path(self.params.out)
         out.mkdir(parents=True, exist_ok=True)
-        by_stamp = lambda msgs: sorted(msgs, key=stamp_ns)
-        write_atomic(out / "trajectory.tum", "".join(tum_line(m) for m in by_stamp(self.final)))
-        write_atomic(out / "trajectory_live.tum", "".join(tum_line(m) for m in by_stamp(self.live)))
+        write_atomic(out / "trajectory.tum", "".join(tum_line(m) for m in sorted(self.final, key=stamp_ns)))
+        write_atomic(out / "trajectory_live.tum", "".join(tum_line(m) for m in sorted(self.live, key=stamp_ns)))
         write_atomic(out / "tags.csv", self.tags_csv())
         dataset = str(Path(self.params.dataset).resolve()) if self.params.dataset else ""
-        write_atomic(out / RUN_FILE, json.dumps({"dataset": dataset}, indent=2) + "\n")
+        write_atomic(out / RUN_FILE, json.dumps(self.run_description(dataset), indent=2) + "\n")
         if dataset and self.final:
             self._evaluate(out, Path(dataset))
+
+    def run_description(self, dataset: str) -> dict[str, Any]:
+        """run.json: the dataset read (so `rover eval` finds its truth), the pipeline and the command
+        line's settings."""
+        pipeline = str(Path(self.context.pipeline_file).resolve()) if self.context.pipeline_file else ""
+        return {"dataset": dataset, "pipeline": pipeline, "command_line": dict(self.context.command_line)}
 
     def _evaluate(self, out: Path, dataset: Path) -> None:
         """metrics.json and figures, when the dataset carries ground truth."""
@@ -165,15 +170,19 @@ class RunOutputs(Operator):
             return
         ids = np.array(sorted(self.tags), dtype=int)
         last = [self.tags[i].last for i in ids]
-        localized = [self.tags[i].first_localized is not None and t is not None for i, t in zip(ids, last)]
-        xy = np.array([[t.position.x, t.position.y] if ok else [math.nan, math.nan] for t, ok in zip(last, localized)])
+        localized = [self.tags[i].first_localized is not None and t is not None for i, t in zip(ids, last, strict=True)]
+        xy = np.array(
+            [
+                [t.position.x, t.position.y] if ok else [math.nan, math.nan]
+                for t, ok in zip(last, localized, strict=True)
+            ]
+        )
         cov = np.array(
             [np.reshape(t.covariance_xy, (2, 2)) if t is not None else np.full((2, 2), math.nan) for t in last]
         )
-        to_poses = lambda msgs: poses_of_messages(sorted(msgs, key=stamp_ns))
         run = record(
-            to_poses(self.final),
-            to_poses(self.live),
+            poses_of_messages(sorted(self.final, key=stamp_ns)),
+            poses_of_messages(sorted(self.live, key=stamp_ns)),
             (ids, xy.reshape(-1, 2), cov.reshape(-1, 2, 2)),
             self.history,
             self.aoa,

@@ -7,8 +7,6 @@ length disagrees with their antenna counts are counted and dropped.
 
 from __future__ import annotations
 
-import logging
-from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,8 +15,6 @@ import numpy as np
 from rover.formats.intel5300 import decode_bfee
 from rover.messages import make
 from rover.operator import Emit, In, Operator, Out
-
-log = logging.getLogger("rover.csi_decode")
 
 
 @dataclass(frozen=True)
@@ -44,7 +40,6 @@ class CsiDecode(Operator):
 
     def __init__(self, params: DecodeParams | None = None):
         super().__init__(params)
-        self.dropped: Counter = Counter()
         self.batch: list[tuple[Any, int]] = []
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
@@ -62,10 +57,8 @@ class CsiDecode(Operator):
             return
         records = decode_bfee([bytes(msg.bfee) for msg, _ in frames], scaled=self.params.scaled)
         lost = len(frames) - len(records)
-        if records.n_skipped:
-            self.dropped["not a beamforming record"] += records.n_skipped
-        if lost > records.n_skipped:
-            self.dropped["corrupt"] += lost - records.n_skipped
+        self.drop("frames that are not beamforming records", records.n_skipped)
+        self.drop("frames with a corrupt record", lost - records.n_skipped)
         for row, index in enumerate(records.offset):
             msg, stamp_ns = frames[index]
             yield self._message(msg, stamp_ns, records, row)
@@ -97,8 +90,6 @@ class CsiDecode(Operator):
 
     def on_end(self):
         yield from self._flush()
-        if self.dropped:
-            log.warning("csi_decode: dropped %s", ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items())))
 
 
 def csi_array(msg: Any) -> np.ndarray:

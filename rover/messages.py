@@ -14,7 +14,9 @@ from typing import Any
 
 import numpy as np
 from rosbags.interfaces import Nodetype
+from rosbags.interfaces.typing import Typesdict
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
 
 from rover.errors import BadInput
 
@@ -25,9 +27,9 @@ _CDR_LE = b"\x00\x01"
 _STAMP = struct.Struct("<iI")
 
 
-def _load_store():
+def _load_store() -> Typestore:
     store = get_typestore(Stores.ROS2_HUMBLE)
-    types: dict = {}
+    types: Typesdict = {}
     for entry in sorted(resources.files("rover.rover_msgs").joinpath("msg").iterdir(), key=lambda p: p.name):
         if entry.name.endswith(".msg"):
             types.update(get_types_from_msg(entry.read_text(), f"rover_msgs/msg/{entry.name[:-4]}"))
@@ -54,7 +56,7 @@ def type_names() -> list[str]:
     return sorted(typestore.fielddefs)
 
 
-def message_class(typename: str) -> type:
+def message_class(typename: str) -> type[Any]:
     try:
         return typestore.types[typename]
     except KeyError:
@@ -133,7 +135,7 @@ def cdr_stamp_ns(payload: bytes) -> int:
     if len(payload) < 12:
         raise ValueError("payload too short for a header stamp")
     sec, nsec = _STAMP.unpack_from(payload, 4) if payload[:2] == _CDR_LE else struct.unpack_from(">iI", payload, 4)
-    return sec * 1_000_000_000 + nsec
+    return int(sec) * 1_000_000_000 + int(nsec)
 
 
 def stamp_ns(msg: Any) -> int:
@@ -141,7 +143,7 @@ def stamp_ns(msg: Any) -> int:
     if isinstance(msg, Raw):
         return cdr_stamp_ns(msg.payload)
     stamp = msg.header.stamp
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def header(stamp: int, frame_id: str = "") -> Any:

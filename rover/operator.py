@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
 
 from rover.errors import OperatorDefinitionError
@@ -54,13 +55,24 @@ class NoParams:
     """Parameters of an operator that takes none."""
 
 
+@dataclass(frozen=True)
+class RunContext:
+    """What an operator may know of the run it is part of: set by the runtime, empty when called in a test."""
+
+    pipeline_file: str = ""
+    pipeline_name: str = ""
+    command_line: Mapping[str, Any] = field(default_factory=dict)
+    """what the command line changed: {"vars": {...}, "params": {"OPERATOR.PARAM": value}}"""
+
+
 class Operator:
     """Base class of every operator.
 
     Subclasses declare `inputs`, `outputs` and a `Params` dataclass, and implement `on_input`.
     `variadic` accepts input ports under any name with the given spec (recorders).
     `lateness_s` bounds how far before the input being handled an output may be stamped
-    (the runtime sends watermarks that much behind).
+    (the runtime sends watermarks that much behind). What a handler discards it counts with
+    `drop`; the runtime reports the counts at the end of the run.
     """
 
     inputs: ClassVar[Mapping[str, In]] = {}
@@ -68,9 +80,29 @@ class Operator:
     variadic: ClassVar[In | None] = None
     Params: ClassVar[type] = NoParams
     lateness_s: ClassVar[float] = 0.0
+    context: RunContext = RunContext()
+    """the run this operator is part of (pipeline file, command-line settings)"""
+
+    _drops: Counter[str]
 
     def __init__(self, params: Any = None) -> None:
         self.params = params if params is not None else self.Params()
+
+    @property
+    def drops(self) -> Counter[str]:
+        """What this operator dropped so far, per reason (made on first use: subclasses need not call
+        `Operator.__init__`)."""
+        try:
+            return self._drops
+        except AttributeError:
+            self._drops = Counter()
+            return self._drops
+
+    def drop(self, reason: str, count: int = 1) -> None:
+        """Count `count` messages dropped for `reason`, a plural noun phrase that reads after the count
+        ("AoAs without an IMU epoch"); the runtime reports each reason once, at the end of the run."""
+        if count > 0:
+            self.drops[reason] += count
 
     def on_input(self, port: str, msg: Any, stamp_ns: int) -> Iterable[Emit]:
         """Handle one message; yield or return the messages to send."""
@@ -93,7 +125,7 @@ class Operator:
         """Raise OperatorDefinitionError when the class's declarations are inconsistent."""
         if not (isinstance(cls.Params, type) and dataclasses.is_dataclass(cls.Params)):
             raise OperatorDefinitionError(f"{cls.__qualname__}.Params must be a dataclass")
-        ports = [*cls.inputs.values(), *cls.outputs.values(), *([cls.variadic] if cls.variadic else [])]
+        ports: list[In | Out] = [*cls.inputs.values(), *cls.outputs.values(), *([cls.variadic] if cls.variadic else [])]
         for port in ports:
             if not known_type(port.type):
                 raise OperatorDefinitionError(f"{cls.__qualname__}: unknown message type {port.type!r}")

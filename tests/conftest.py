@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rover.formats.bag import BagWriter
+from rover.formats.bag import BagWriter, iter_messages
 from rover.messages import header, make
 
 TESTS = Path(__file__).resolve().parent
@@ -88,10 +88,7 @@ def popen_rover(*args: str, cwd: Path | None = None) -> subprocess.Popen:
 
 def read_bag(path: Path) -> list[tuple[str, int, bytes]]:
     """(topic, log time, payload) of every message of an MCAP file, in file order."""
-    from mcap.reader import make_reader
-
-    with path.open("rb") as f:
-        return [(ch.topic, m.log_time, m.data) for _s, ch, m in make_reader(f).iter_messages(log_time_order=False)]
+    return [(m.topic, m.log_time_ns, m.data) for m in iter_messages(path, log_time_order=False)]
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,5 @@
-"""`channel_hop`: the sweep applied to an interface, in dry-run (prints the commands) as on a robot without a NIC here."""
+"""`channel_hop`: the sweep applied to an interface, in dry-run (prints the commands) as on a robot
+without a NIC here."""
 
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ operators:
 
 
 def test_custom_command_template_and_failures():
-    ran = []
+    ran: list[list[str]] = []
     hop = ChannelHop(
         HopParams(
             channels=[36, 40],

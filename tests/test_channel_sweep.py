@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from conftest import T0_NS
 from rover.errors import BadInput
 from rover.messages import header, make
 from rover.operators.channel_sweep.operator import ChannelSweep, SweepParams
+from rover.testing import run_operator
 
 SETUP = """\
 receiver: {antenna_positions_m: [[0, 0], [0.0258, 0], [0.0129, -0.0223]]}
@@ -32,28 +34,19 @@ def setup_msg(text: str = SETUP):
     return make("rover_msgs/msg/RigSetup", header=header(T0_NS), setup_yaml=text)
 
 
-def run(op: ChannelSweep, items):
-    out = []
-    for port, msg in items:
-        out += list(op.on_input(port, msg, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec))
-    return out + list(op.on_end())
-
-
 def test_labels_frames_and_sends_the_schedule(caplog):
     op = ChannelSweep()
-    early = frame(153, 0)
-    items = [("frames", early), ("setup", setup_msg())] + [
-        ("frames", frame(ch, i + 1)) for i, ch in enumerate([149, 161, 100, 157, 100])
-    ]
+    early = frame(153, 0)  # as early as the setup: frames go first at a tie (port names), so it waits for it
+    frames = [early] + [frame(ch, i + 1) for i, ch in enumerate([149, 161, 100, 157, 100])]
     with caplog.at_level(logging.WARNING):
-        out = run(op, items)
+        out = run_operator(op, {"frames": frames, "setup": [setup_msg()]})
     schedule = [e.msg for e in out if e.port == "schedule"]
     assert len(schedule) == 1
     assert schedule[0].channels.tolist() == [149, 153, 157, 161] and schedule[0].tag_ids.tolist() == [1, 2, 3, 4]
     assert schedule[0].dwell_s == 0.05 and schedule[0].excitation_channel == 165
     labelled = [(e.msg.channel, e.msg.tag_id, int(e.msg.bfee[1])) for e in out if e.port == "labelled"]
     assert labelled == [(153, 2, 0), (149, 1, 1), (161, 4, 2), (157, 3, 4)]
-    assert "2 CSI frames dropped on channels no tag owns (channel 100: 2)" in caplog.text
+    assert op.drops == {"CSI frames on channel 100 no tag owns": 2}
     assert "tag 4's 3rd harmonic" in caplog.text and "a conflict-free assignment" in caplog.text
 
 
@@ -73,18 +66,18 @@ def test_a_bad_rig_on_the_wire_is_bad_input():
 
 def test_live_frames_take_the_channel_tuned_at_their_stamp():
     op = ChannelSweep()
-    hop = lambda ch, i: make("rover_msgs/msg/ChannelHop", header=header(T0_NS + i), interface="wlan0", channel=ch)
-    items = [
-        ("setup", setup_msg()),
-        ("hops", hop(149, 1)),
-        ("frames", frame(0, 2)),
-        ("frames", frame(0, 3)),
-        ("hops", hop(157, 4)),
-        ("frames", frame(0, 5)),
-        ("hops", hop(100, 6)),
-        ("frames", frame(0, 7)),
-    ]
-    out = run(op, items)
+
+    def hop(ch: int, i: int) -> Any:
+        return make("rover_msgs/msg/ChannelHop", header=header(T0_NS + i), interface="wlan0", channel=ch)
+
+    out = run_operator(
+        op,
+        {
+            "setup": [setup_msg()],
+            "hops": [hop(149, 1), hop(157, 4), hop(100, 6)],
+            "frames": [frame(0, 2), frame(0, 3), frame(0, 5), frame(0, 7)],
+        },
+    )
     labelled = [(e.msg.channel, e.msg.tag_id) for e in out if e.port == "labelled"]
     assert labelled == [(149, 1), (149, 1), (157, 3)]
-    assert op.unowned == {100: 1}
+    assert op.drops == {"CSI frames on channel 100 no tag owns": 1}

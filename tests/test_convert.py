@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -55,7 +56,7 @@ def test_the_real_ros1_bag_keeps_every_imu_sample(tmp_path):
     assert report.written == {"/imu/data": 3061, "/odom": 3060}
     with AnyReader([bag]) as reader:
         conn = [c for c in reader.connections if c.topic == "/imu/data"]
-        source = [reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages(connections=conn)]
+        source: list[Any] = [reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages(connections=conn)]
     converted = [deserialize(d, "sensor_msgs/msg/Imu") for t, _s, d in read_bag(out) if t == "/imu/data"]
     for a, b in zip(source, converted, strict=True):
         assert (a.header.stamp.sec, a.header.stamp.nanosec) == (b.header.stamp.sec, b.header.stamp.nanosec)

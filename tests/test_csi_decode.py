@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 from conftest import T0_NS, reference_data
 
 from rover.formats.intel5300 import read_dat, split_records
 from rover.messages import deserialize, header, make, serialize
 from rover.operators.csi_decode import CsiDecode, csi_array
+from rover.testing import run_operator
 
 
 def labelled(bfee: bytes, channel: int, i: int):
@@ -22,18 +21,14 @@ def labelled(bfee: bytes, channel: int, i: int):
     )
 
 
-def test_decoded_messages_equal_the_file_decoder_and_keep_their_frame(caplog):
+def test_decoded_messages_equal_the_file_decoder_and_keep_their_frame():
     path = reference_data() / "csi" / "sample_0x1_ap.dat"
     records, _ = split_records(path.read_bytes())
     whole = read_dat(path)
     op = CsiDecode()
     frames = [labelled(r, 149 if i < 300 else 153, i) for i, r in enumerate(records[:400])]
     frames.insert(10, labelled(b"\xc1garbage", 149, 10))
-    out = []
-    with caplog.at_level(logging.WARNING):
-        for f in frames:
-            out += list(op.on_input("frames", f, T0_NS))
-        out += list(op.on_end())
+    out = run_operator(op, {"frames": frames})
     assert len(out) == 400
     msgs = [deserialize(serialize(e.msg), "rover_msgs/msg/Csi") for e in out]
     assert [m.bfee_count for m in msgs] == whole.bfee_count[:400].tolist()
@@ -41,4 +36,4 @@ def test_decoded_messages_equal_the_file_decoder_and_keep_their_frame(caplog):
     for k in (0, 299, 399):
         np.testing.assert_allclose(csi_array(msgs[k]), whole.csi[k, :, :3, :2], rtol=1e-6)
         assert msgs[k].perm.tolist() == whole.perm[k].tolist()
-    assert "csi_decode: dropped 1 not a beamforming record\n" in caplog.text
+    assert op.drops == {"frames that are not beamforming records": 1}

@@ -17,6 +17,7 @@ from rover.drivers.csi_netlink import (
     pack_datagram,
     parse_datagram,
 )
+from rover.operator import Emit
 
 
 def log_records(data: bytes) -> list[bytes]:
@@ -42,7 +43,7 @@ def test_records_from_the_connector_are_published_and_logged_byte_exact(tmp_path
     stop = threading.Event()
     frames = []
     for item in source.run(stop):
-        if hasattr(item, "port"):
+        if isinstance(item, Emit):
             frames.append(item.msg)
             if len(frames) == len(records):
                 stop.set()
@@ -52,7 +53,7 @@ def test_records_from_the_connector_are_published_and_logged_byte_exact(tmp_path
     assert all(f.channel == 149 for f in frames)
     stamps = [f.header.stamp.sec * 10**9 + f.header.stamp.nanosec for f in frames]
     assert stamps == sorted(stamps)
-    assert source.bad == 2
+    assert source.drops == {"datagrams that are not CSI Tool records": 2}
     assert (tmp_path / "live.dat").read_bytes() == raw
 
 

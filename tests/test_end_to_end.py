@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 from conftest import read_bag, reference_data, run_rover
-from mcap.reader import make_reader
 
-from rover.formats.bag import BagWriter
+from rover.formats.bag import BagReader, BagWriter
+from rover.geometry import wrap_angle
 from rover.messages import deserialize
 
 
@@ -55,13 +55,12 @@ def test_the_demo_beats_the_papers_figures(tmp_path, simulated):
 
 def strip_truth(source: Path, target: Path) -> None:
     """The same dataset without /groundtruth/* and without the truth metadata."""
-    with source.open("rb") as f:
-        reader = make_reader(f)
-        meta = {m.name: m.metadata for m in reader.iter_metadata() if m.name not in ("rover.truth", "rover.simulation")}
+    with BagReader(source) as reader:
+        meta = {k: v for k, v in reader.metadata().items() if k not in ("rover.truth", "rover.simulation")}
         with BagWriter(target, metadata=meta) as bag:
-            for schema, channel, message in reader.iter_messages(log_time_order=True):
-                if not channel.topic.startswith("/groundtruth/"):
-                    bag.write(channel.topic, deserialize(message.data, schema.name), message.log_time)
+            for message in reader.messages(log_time_order=True):
+                if not message.topic.startswith("/groundtruth/"):
+                    bag.write(message.topic, deserialize(message.data, message.schema), message.log_time_ns)
 
 
 def test_ground_truth_never_reaches_the_estimate(tmp_path, simulated):
@@ -69,8 +68,16 @@ def test_ground_truth_never_reaches_the_estimate(tmp_path, simulated):
     blind = tmp_path / "blind.mcap"
     strip_truth(dataset, blind)
     for name, path in (("with", dataset), ("without", blind)):
-        proc = run_rover("run", "--dataset", str(path), "--output", str(tmp_path / name), timeout=600)
+        out = tmp_path / name
+        # The default window, given on the command line: the same results, and run.json records it.
+        proc = run_rover("run", "--dataset", str(path), "--output", str(out), "--set", "slam.window=30", timeout=600)
         assert proc.returncode == 0, proc.stderr
+        run = json.loads((out / "run.json").read_text())
+        assert run["dataset"] == str(path.resolve()) and run["pipeline"].endswith("pipeline.yaml")
+        assert run["command_line"] == {
+            "vars": {"dataset": str(path), "output": str(out)},
+            "params": {"slam.window": 30},
+        }
     for name in ("trajectory.tum", "trajectory_live.tum", "tags.csv"):
         assert (tmp_path / "with" / name).read_bytes() == (tmp_path / "without" / name).read_bytes(), name
     assert (tmp_path / "with" / "metrics.json").exists()
@@ -105,7 +112,7 @@ def test_sample_recording_convert_run_eval(tmp_path):
             aoa = deserialize(data, "rover_msgs/msg/Aoa")
             s = aoa.header.stamp.sec * 1_000_000_000 + aoa.header.stamp.nanosec
             k = int(np.argmin(np.abs(stamps - s)))
-            errors.append(abs(math.remainder(aoa.angle_rad - truth[int(stamps[k])], 2 * math.pi)))
+            errors.append(abs(wrap_angle(aoa.angle_rad - truth[int(stamps[k])])))
     assert math.degrees(float(np.median(errors))) <= 10.0
     assert (
         metrics["aoa"]["all"]["within_3_std"] >= 0.95 and 0.3 <= metrics["aoa"]["all"]["error_over_std_median"] <= 1.2

@@ -34,7 +34,7 @@ def write_tum(path: Path, t: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> Pat
     path.write_text(
         "".join(
             f"{a:.9f} {x:.6f} {y:.6f} 0 0 0 {math.sin(w / 2):.9f} {math.cos(w / 2):.9f}\n"
-            for a, (x, y), w in zip(t, xy, yaw)
+            for a, (x, y), w in zip(t, xy, yaw, strict=True)
         )
     )
     return path

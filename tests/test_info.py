@@ -9,7 +9,10 @@ from conftest import T0_NS, reference_data, run_rover, write_imu_dataset
 from rover.formats.bag import BagWriter
 from rover.messages import header, make
 
-SETUP = "receiver: {antenna_positions_m: [[0, 0], [0.0258, 0]]}\nexcitation: {channel: 165}\ntags: [{id: 7, channel: 149}]\n"
+SETUP = (
+    "receiver: {antenna_positions_m: [[0, 0], [0.0258, 0]]}\nexcitation: {channel: 165}\n"
+    "tags: [{id: 7, channel: 149}]\n"
+)
 
 
 def test_json_of_a_dataset_with_csi_and_setup(tmp_path):

@@ -399,10 +399,11 @@ def test_encoding_is_the_exact_inverse(small):
     raw = decode_log(small, scaled=False)
     for i, record in enumerate(records_of(small)):
         n, t = int(raw.nrx[i]), int(raw.ntx[i])
+        rssi_a, rssi_b, rssi_c = (int(v) for v in raw.rssi[i])
         head = RecordHeader(
             int(raw.timestamp_low[i]),
             int(raw.bfee_count[i]),
-            tuple(int(v) for v in raw.rssi[i]),
+            (rssi_a, rssi_b, rssi_c),
             int(raw.noise[i]),
             int(raw.agc[i]),
             int(raw.antenna_sel[i]),

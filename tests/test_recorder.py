@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from conftest import T0_NS, read_bag
 from rosbags.highlevel import AnyReader
 
@@ -27,7 +29,7 @@ def test_writes_a_ros2_bag_other_tools_read(tmp_path):
     with AnyReader([path]) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         assert topics == {"/imu/data": "sensor_msgs/msg/Imu", "/tags": "std_msgs/msg/String"}
-        msgs = [reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages()]
+        msgs: list[Any] = [reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages()]
         assert msgs[-1].data == "x"
 
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from conftest import reference_data, run_rover
 
-from rover.errors import SpecError
-from rover.formats.rig import load_rig, rig_from_text
+from rover.errors import BadInput, SpecError
+from rover.formats.rig import RigInput, load_rig, rig_from_text
+from rover.messages import make
 
 SETUP = """\
 receiver:
@@ -32,7 +33,8 @@ def test_per_channel_calibration_and_tags_by_shift():
     rig = rig_from_text(SETUP)
     np.testing.assert_allclose(rig.phase_offsets(153), [0.0, 1.0, -1.6])
     np.testing.assert_allclose(rig.phase_offsets(157), [0.0, 0.0, 0.0])
-    assert rig.tag_on(153).id == 2 and rig.tags[1].shift_hz == 60e6
+    tag = rig.tag_on(153)
+    assert tag is not None and tag.id == 2 and rig.tags[1].shift_hz == 60e6
     assert rig.imu.rotation_rpy_deg == (0.0, 0.0, 90.0) and rig.text == SETUP
 
 
@@ -45,6 +47,17 @@ def test_every_problem_with_its_position():
     assert any(m.startswith("s.yaml:2:") and "antenna positions" in m for m in messages), messages
     assert any(m.startswith("s.yaml:4:23:") and "999 is not a WiFi channel" in m for m in messages), messages
     assert any("unknown key 'imus'" in m for m in messages), messages
+
+
+def test_the_setup_input_parses_a_text_once_and_names_itself_in_errors():
+    setup = RigInput()
+    first = setup.update(make("rover_msgs/msg/RigSetup", setup_yaml=SETUP))
+    assert setup.update(make("rover_msgs/msg/RigSetup", setup_yaml=SETUP)) is first
+    other = setup.update(make("rover_msgs/msg/RigSetup", setup_yaml=SETUP.replace("165", "161")))
+    assert other is not first and other.excitation_channel == 161
+    with pytest.raises(BadInput, match=r"^rig description on the setup input: RigSetup:2:.*antenna positions"):
+        setup.update(make("rover_msgs/msg/RigSetup", setup_yaml=SETUP.replace("[0.0129, -0.02234]", "[0.0129]")))
+    assert setup.rig is other
 
 
 def test_cli_check_reports_the_plans_conflicts(tmp_path):

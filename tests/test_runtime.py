@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import signal
+import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -11,7 +13,7 @@ import zenoh
 from conftest import free_port, popen_rover, read_bag, run_rover, write_imu_dataset
 
 from rover.messages import cdr_stamp_ns, header, make, serialize
-from rover.transport import codec
+from rover.transport import codec, keys
 
 TOY = """\
 version: 1
@@ -31,6 +33,53 @@ operators:
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     return write_imu_dataset(tmp_path_factory.mktemp("data") / "toy.mcap", 4000)
+
+
+WAIT_S = 60.0
+"""The longest a test waits for a process to start listening, become ready or send enough messages."""
+
+
+def client(port: int) -> zenoh.Session:
+    """A Zenoh client of the rover process that listens on `port`; it waits for the process to listen."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/timeout_ms", str(int(WAIT_S * 1000)))
+    conf.insert_json5("connect/exit_on_failure", "true")
+    conf.insert_json5("connect/retry", '{"period_init_ms": 50, "period_max_ms": 200, "period_increase_factor": 1.5}')
+    return zenoh.open(conf)
+
+
+def wait_for(event: threading.Event, proc: subprocess.Popen) -> bool:
+    """Wait for `event` while the process runs, at most WAIT_S; False when it exited or time ran out."""
+    deadline = time.monotonic() + WAIT_S
+    while not event.wait(0.1):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            return False
+    return True
+
+
+def ready_event(session: zenoh.Session, pipeline: str, host: str) -> tuple[zenoh.Subscriber, threading.Event]:
+    """An event set once the host declares its `ready` token, which it does after declaring its subscribers."""
+    ready = threading.Event()
+    key = keys.host_token(pipeline, host, "ready")
+    return session.liveliness().declare_subscriber(key, lambda _sample: ready.set(), history=True), ready
+
+
+def data_event(session: zenoh.Session, key: str, wanted: int) -> tuple[zenoh.Subscriber, threading.Event]:
+    """An event set once `wanted` data samples (not watermarks or ends) arrived on `key`."""
+    count = [0]
+    enough = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        att = sample.attachment
+        kind, _stamp, _mark = codec.read_attachment(att.to_bytes() if att is not None else None)
+        count[0] += kind == codec.Kind.DATA
+        if count[0] >= wanted:
+            enough.set()
+
+    return session.declare_subscriber(key, on_sample), enough
 
 
 def run_hosts(pipeline: Path, hosts: list[str], *args: str, timeout: float = 120) -> list[tuple[int, str]]:
@@ -104,11 +153,16 @@ operators:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_live_run_stops_cleanly_on_a_signal(tmp_path, sig):
+    """Stopped once 25 messages went through (a client watches them), it keeps at least 20 of them."""
     pipeline = tmp_path / "live.yaml"
     pipeline.write_text(LIVE)
-    proc = popen_rover("run", str(pipeline), "--output", str(tmp_path / "out"))
-    time.sleep(2.0)
-    assert proc.poll() is None, proc.communicate()
+    port = free_port()
+    out = str(tmp_path / "out")
+    proc = popen_rover("run", str(pipeline), "--host", "robot", "--output", out, "--set", f"port={port}")
+    with client(port) as watcher:
+        _sub, flowing = data_event(watcher, "rover/live/pass/imu", 25)
+        started = wait_for(flowing, proc)
+    assert started and proc.poll() is None, proc.communicate()
     sent = time.monotonic()
     proc.send_signal(sig)
     _out, err = proc.communicate(timeout=10)
@@ -125,6 +179,21 @@ def test_a_run_ends_by_itself_at_end_of_stream(tmp_path):
     proc = run_rover("run", str(pipeline), "--output", str(tmp_path / "out"), "--set", "count=25", timeout=30)
     assert proc.returncode == 0, proc.stderr
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 25
+
+
+def test_what_an_operator_drops_is_reported_at_the_end_of_the_run(tmp_path):
+    pipeline = tmp_path / "thin.yaml"
+    pipeline.write_text("""\
+name: thin
+operators:
+  tick:   {uses: toyops.Ticker, params: {rate_hz: 1000, count: 9}}
+  thin:   {uses: toyops.Thin, inputs: {imu: tick/imu}}
+  record: {uses: recorder, inputs: {imu: thin/imu}, params: {out: out}}
+""")
+    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "rover: WARNING: operator 'thin': dropped 4 messages of even rank\n" in proc.stderr
+    assert len(read_bag(tmp_path / "out" / "results.mcap")) == 5
 
 
 def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_path):
@@ -144,31 +213,29 @@ def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_p
         "--set",
         f"port={port}",
     )
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    time.sleep(1.0)
-    with zenoh.open(conf) as foreign:
+    with client(port) as foreign:
+        _token, ready = ready_event(foreign, "live", "robot")
+        assert wait_for(ready, proc), proc.communicate()
         key = "rover/live/tick/imu"
         good = serialize(make("sensor_msgs/msg/Imu", header=header(0)))
+        block = zenoh.CongestionControl.BLOCK
         for _ in range(5):
-            foreign.put(key, b"\x00garbage\xff" * 7)
+            foreign.put(key, b"\x00garbage\xff" * 7, congestion_control=block)
             foreign.put(
                 key,
                 b"\x00\x01\x00\x00" + b"\xff" * 3,
                 encoding=codec.encoding("sensor_msgs/msg/Imu"),
                 attachment=codec.attachment(codec.Kind.DATA, 0, 0),
+                congestion_control=block,
             )
             foreign.put(
                 key,
                 good,
                 encoding=codec.encoding("std_msgs/msg/String"),
                 attachment=codec.attachment(codec.Kind.DATA, 0, 0),
+                congestion_control=block,
             )
-            time.sleep(0.05)
-        time.sleep(0.5)
-    _out, err = proc.communicate(timeout=30)
+        _out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 150
     assert "imu:missing or malformed Rover attachment=5" in err
@@ -247,25 +314,15 @@ operators:
   merge: {{uses: toyops.Merge, host: robot, inputs: {{a: tick/imu, b: tick/silent}}}}
 """)
     proc = popen_rover("run", str(pipeline), "--host", "robot")
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    seen = []
     try:
-        time.sleep(1.0)
-        with zenoh.open(conf) as watcher:
-            sub = watcher.declare_subscriber(
-                "rover/silent/merge/out", lambda s: seen.append(codec.read_attachment(s.attachment.to_bytes()))
-            )
-            time.sleep(2.0)
-            live = [k for k, _s, _w in seen if k == codec.Kind.DATA]
-            sub.undeclare()
+        with client(port) as watcher:
+            _sub, enough = data_event(watcher, "rover/silent/merge/out", 50)
+            flowing = wait_for(enough, proc)
     finally:
         proc.send_signal(signal.SIGINT)
         _out, err = proc.communicate(timeout=10)
     assert proc.returncode == 130, err
-    assert len(live) >= 50, f"only {len(live)} messages flowed while input 'b' was silent"
+    assert flowing, f"fewer than 50 messages flowed in {WAIT_S:g} s while input 'b' was silent"
 
 
 def test_the_default_pipeline_on_three_hosts_gives_the_same_results(tmp_path):

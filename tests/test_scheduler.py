@@ -50,7 +50,7 @@ def test_arrival_interleaving_does_not_change_the_order():
     rng = random.Random(3)
     streams = {p: sorted(rng.randrange(1000) for _ in range(200)) for p in ("x", "y", "z")}
     orders = []
-    for trial in range(20):
+    for _trial in range(20):
         events = [(p, i) for p, stamps in streams.items() for i in range(len(stamps) + 1)]
         rng.shuffle(events)
         events.sort(key=lambda e: (e[0], e[1]))  # each stream stays in its own order

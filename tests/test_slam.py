@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import Any
 
 import numpy as np
 from slam_scenes import EXACT_COVARIANCE, angles, edge, scene
 
+from rover.geometry import quaternion_from_yaw
 from rover.messages import header, make
 from rover.operators.slam.operator import Slam, SlamParams
+from rover.testing import run_operator
 
 START_NS = 1_000_000_000
 
@@ -19,8 +22,14 @@ def preintegration(sc, k: int):
     cov = np.zeros((9, 9))
     cov[np.ix_([3, 4, 6, 7], [3, 4, 6, 7])] = EXACT_COVARIANCE
     cov[[0, 1, 2, 5, 8], [0, 1, 2, 5, 8]] = 1e-10
-    vec = lambda v: make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=0.0)
-    quat = lambda yaw: make("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+
+    def vec(v: np.ndarray) -> Any:
+        return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=0.0)
+
+    def quat(yaw: float) -> Any:
+        xyzw = map(float, quaternion_from_yaw(yaw))
+        return make("geometry_msgs/msg/Quaternion", **dict(zip("xyzw", xyzw, strict=True)))
+
     return make(
         "rover_msgs/msg/Preintegration",
         header=header(stamp(sc, k), "world"),
@@ -40,28 +49,27 @@ def stamp(sc, k: int) -> int:
 
 
 def feed(op: Slam, sc, measured, with_aoa: bool = True):
-    out = []
-    for k, (tag, angle) in enumerate(measured):
-        if with_aoa:
-            aoa = make(
-                "rover_msgs/msg/Aoa",
-                header=header(stamp(sc, k), "base_link"),
-                tag_id=tag + 1,
-                channel=149 + 4 * tag,
-                angle_rad=angle,
-                std_rad=math.radians(1.0),
-                packets=7,
-            )
-            out += list(op.on_input("aoa", aoa, stamp(sc, k)))
-        if k:
-            out += list(op.on_input("odometry", preintegration(sc, k), stamp(sc, k)))
-    return out + list(op.on_end())
+    """An AoA at every epoch of the scene and the odometry from the previous one, as the runtime delivers them."""
+    aoas = [
+        make(
+            "rover_msgs/msg/Aoa",
+            header=header(stamp(sc, k), "base_link"),
+            tag_id=tag + 1,
+            channel=149 + 4 * tag,
+            angle_rad=angle,
+            std_rad=math.radians(1.0),
+            packets=7,
+        )
+        for k, (tag, angle) in enumerate(measured)
+    ]
+    odometry = [preintegration(sc, k) for k in range(1, len(measured))]
+    return run_operator(op, {"aoa": aoas if with_aoa else [], "odometry": odometry})
 
 
 def test_outputs_per_epoch_and_tags_localized():
     sc = scene(seconds=8.0)
     out = feed(Slam(SlamParams(window=20, aoa_std_scale=1.0)), sc, angles(sc))  # exact bearings, nothing shared
-    by_port = {}
+    by_port: dict[str, list[Any]] = {}
     for e in out:
         by_port.setdefault(e.port, []).append(e)
     n = len(sc.t)
@@ -97,6 +105,7 @@ def test_no_odometry_at_all_and_bad_angles_are_counted(caplog):
     bad = make("rover_msgs/msg/Aoa", header=header(START_NS), tag_id=1, angle_rad=float("nan"), std_rad=0.1)
     good = make("rover_msgs/msg/Aoa", header=header(START_NS + 1), tag_id=1, angle_rad=0.3, std_rad=0.1)
     with caplog.at_level(logging.WARNING):
-        out = list(op.on_input("aoa", bad, START_NS)) + list(op.on_input("aoa", good, START_NS + 1)) + list(op.on_end())
+        out = run_operator(op, {"aoa": [bad, good]})
     assert out == []
     assert "no epoch to estimate" in caplog.text
+    assert op.drops == {"AoAs with a non-finite angle or std": 1}

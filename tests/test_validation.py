@@ -43,7 +43,7 @@ def at(text: str, needle: str, nth: int = 0) -> tuple[int, int]:
 
 def has(found, where, *words):
     line, col = where
-    assert any(l == line and c == col and all(w in m for w in words) for l, c, m in found), found
+    assert any(ln == line and c == col and all(w in m for w in words) for ln, c, m in found), found
 
 
 def test_good_file_passes(tmp_path):
@@ -131,7 +131,8 @@ def test_unwired_required_input(tmp_path):
 def test_cycle(tmp_path):
     text = (
         GOOD
-        + "  a: {uses: toyops.Passthrough, inputs: {imu: b/imu}}\n  b: {uses: toyops.Passthrough, inputs: {imu: a/imu}}\n"
+        + "  a: {uses: toyops.Passthrough, inputs: {imu: b/imu}}\n"
+        + "  b: {uses: toyops.Passthrough, inputs: {imu: a/imu}}\n"
     )
     has(problems(tmp_path, text), at(text, "a/imu"), "cycle: a <- b <- a")
 
@@ -202,3 +203,84 @@ def test_cli_check_good_file_one_line(tmp_path):
 def test_cli_missing_file(tmp_path):
     proc = run_rover("check", str(tmp_path / "nope.yaml"))
     assert proc.returncode == 2 and "nope.yaml: no such file" in proc.stderr
+
+
+BAD_VALUES = """\
+version: 1
+name: toy
+vars: {port: 99999}
+hosts:
+  nuc: {listen: ["tcp/127.0.0.1:${port}"], connect_timeout_s: .inf}
+  laptop: {connect: ["tcp/127.0.0.1:7447"], connect_timeout_s: 0}
+operators:
+  replay: {uses: dataset_replay, host: nuc, params: {path: data.mcap, speed: -1}}
+  sweep: {uses: channel_sweep, host: laptop, inputs: {frames: replay/csi, setup: replay/setup}, params: {dwell_s: 0}}
+"""
+
+
+def test_check_rejects_out_of_range_values_with_their_positions(tmp_path):
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(BAD_VALUES)
+    proc = run_rover("check", str(path))
+    assert proc.returncode == 2
+    lines = proc.stderr.splitlines()
+
+    def reported(needle: str, *words: str) -> None:
+        line, col = at(BAD_VALUES, needle)
+        assert any(x.startswith(f"{path}:{line}:{col}: ") and all(w in x for w in words) for x in lines), lines
+
+    reported('"tcp/127.0.0.1:${port}"', "port 99999 is outside 1-65535")
+    reported(".inf", "connect_timeout_s", "finite")
+    reported("0}\noperators", "connect_timeout_s", "must be > 0")
+    reported("-1}", "param 'speed' of operator 'replay'", "float > 0", "got -1")
+    reported("0}}\n", "param 'dwell_s' of operator 'sweep'", "must be > 0")
+
+
+def test_check_rejects_a_rig_with_nan_antenna_positions(tmp_path):
+    text = (
+        "receiver: {antenna_positions_m: [[0, 0], [.nan, 0.02]]}\n"
+        "excitation: {channel: 165}\ntags: [{id: 1, channel: 149}]\n"
+    )
+    path = tmp_path / "setup.yaml"
+    path.write_text(text)
+    proc = run_rover("check", str(path))
+    line, col = at(text, "[.nan")
+    assert (
+        proc.returncode == 2
+        and f"{path}:{line}:{col}: antenna 1 position must be a list of finite numbers" in proc.stderr
+    )
+
+
+def test_set_operator_param_is_typed_and_validated(tmp_path):
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(GOOD)
+    pipeline = load_and_check(path, BUILTINS, {"heading.gain": 3, "record.file": "x.mcap", "output": "o"})
+    assert pipeline.nodes["heading"].params.gain == 3.0 and pipeline.nodes["record"].params.file == "x.mcap"
+    assert pipeline.spec.command_line() == {
+        "vars": {"output": "o"},
+        "params": {"heading.gain": 3, "record.file": "x.mcap"},
+    }
+    assert pipeline.nodes["heading"].build().context.command_line["params"] == {
+        "heading.gain": 3,
+        "record.file": "x.mcap",
+    }
+
+
+def test_set_operator_param_errors_name_the_operator_in_the_file(tmp_path):
+    found = problems(tmp_path, GOOD, **{"heading.gian": 3, "hedaing.gain": 1, "heading.gain": "x"})
+    has(found, at(GOOD, "heading:"), "--set heading.gian=3", "has no param 'gian'", "did you mean 'gain'")
+    has(found, at(GOOD, "gain: 2"), "--set heading.gain='x'", "param 'gain' of operator 'heading'", "expected float")
+    has(found, at(GOOD, "operators:"), "--set hedaing.gain", "no operator 'hedaing'", "did you mean 'heading'")
+
+
+@pytest.mark.parametrize("item", ["slam.=1", ".wheel=1", "slam.a-b=1", "no_equals_sign"])
+def test_set_with_a_malformed_name_is_one_line_and_status_2(item):
+    proc = run_rover("run", "--set", item)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "--set" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_set_reaches_check_graph_and_run(tmp_path):
+    assert run_rover("check", str(ROOT / "pipeline.yaml"), "--set", "slam.wheel=false").returncode == 0
+    proc = run_rover("graph", str(ROOT / "pipeline.yaml"), "--set", "slam.window=1")
+    assert proc.returncode == 2 and "--set slam.window=1" in proc.stderr and "must be >= 2" in proc.stderr

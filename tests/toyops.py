@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from dataclasses import dataclass
 
+from rover.geometry import quaternion_from_yaw
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out, Source, Watermark
 
@@ -37,8 +37,8 @@ class Heading(Operator):
             self.last_ns = stamp_ns
             return
         pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp_ns, "world"), pose=msg.pose.pose)
-        pose.pose.orientation.z = math.sin(self.yaw / 2)
-        pose.pose.orientation.w = math.cos(self.yaw / 2)
+        _, _, qz, qw = quaternion_from_yaw(self.yaw)
+        pose.pose.orientation.z, pose.pose.orientation.w = float(qz), float(qw)
         yield Emit("pose", pose)
 
 
@@ -48,6 +48,24 @@ class Passthrough(Operator):
 
     def on_input(self, port, msg, stamp_ns):
         yield Emit("imu", msg)
+
+
+class Thin(Operator):
+    """Passes every other message on; the others it drops, for the runtime to report."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    outputs = {"imu": Out("sensor_msgs/msg/Imu")}
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        self.n = 0
+
+    def on_input(self, port, msg, stamp_ns):
+        self.n += 1
+        if self.n % 2:
+            yield Emit("imu", msg)
+        else:
+            self.drop("messages of even rank")
 
 
 class Explode(Operator):

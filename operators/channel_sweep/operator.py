@@ -8,28 +8,28 @@ warnings when labelling recorded data and are errors when planning a live sweep.
 from __future__ import annotations
 
 import logging
-from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
 
-from rover.errors import BadInput, SpecError
-from rover.formats.rig import Rig, rig_from_text
+from rover.errors import BadInput
+from rover.formats.rig import Rig, RigInput
 from rover.formats.wifi import INTEL5300_CHANNELS_5GHZ
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.channel_sweep.channel_plan import conflicts, max_tags, propose
+from rover.pipeline.params import Checked, PositiveFloat
 
 log = logging.getLogger("rover.channel_sweep")
 
 
 @dataclass(frozen=True)
-class SweepParams:
-    dwell_s: float = 0.05
+class SweepParams(Checked):
+    dwell_s: PositiveFloat = 0.05
     channels: list[int] = field(default_factory=lambda: list(INTEL5300_CHANNELS_5GHZ))
     mode: Literal["label", "live"] = "label"
-    max_shift_hz: float | None = None
+    max_shift_hz: PositiveFloat | None = None
 
 
 class ChannelSweep(Operator):
@@ -49,19 +49,17 @@ class ChannelSweep(Operator):
 
     def __init__(self, params: SweepParams | None = None):
         super().__init__(params)
-        if not self.params.dwell_s > 0:
-            raise BadInput(f"channel_sweep: dwell_s must be positive, got {self.params.dwell_s}")
+        self.setup = RigInput()
         self.rig: Rig | None = None
         self.owner: dict[int, int] = {}
         self.waiting: list[tuple[Any, int]] = []
-        self.unowned: Counter = Counter()
         self.tuned = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "hops":
             self.tuned = msg.channel
         elif port == "setup":
-            yield from self._configure(msg.setup_yaml, stamp_ns)
+            yield from self._configure(msg, stamp_ns)
             for frame, stamp in self.waiting:
                 yield from self._label(frame, stamp)
             self.waiting.clear()
@@ -70,11 +68,8 @@ class ChannelSweep(Operator):
         else:
             yield from self._label(msg, stamp_ns)
 
-    def _configure(self, text: str, stamp_ns: int):
-        try:
-            rig = rig_from_text(text, "RigSetup")
-        except SpecError as exc:
-            raise BadInput(f"rig description on the setup input: {exc.diagnostics[0]}") from None
+    def _configure(self, msg: Any, stamp_ns: int):
+        rig = self.setup.update(msg)
         self.rig = rig
         p = self.params
         wanted = {t.id: t.channel for t in rig.tags}
@@ -113,7 +108,7 @@ class ChannelSweep(Operator):
         channel = frame.channel or self.tuned
         tag = self.owner.get(channel)
         if tag is None:
-            self.unowned[channel] += 1
+            self.drop(f"CSI frames on channel {channel} no tag owns")
             return
         yield Emit(
             "labelled",
@@ -122,11 +117,5 @@ class ChannelSweep(Operator):
         )
 
     def on_end(self):
-        if self.waiting:
-            log.warning("channel_sweep: %d CSI frames dropped: no rig description arrived", len(self.waiting))
-        if self.unowned:
-            counts = ", ".join(f"channel {c}: {n}" for c, n in sorted(self.unowned.items()))
-            log.warning(
-                "channel_sweep: %d CSI frames dropped on channels no tag owns (%s)", sum(self.unowned.values()), counts
-            )
+        self.drop("CSI frames (no rig description arrived)", len(self.waiting))
         return ()

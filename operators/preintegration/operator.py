@@ -18,29 +18,29 @@ from typing import Any
 
 import numpy as np
 
-from rover.errors import BadInput, SpecError
-from rover.formats.rig import rig_from_text
+from rover.formats.rig import RigInput
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
+from rover.pipeline.params import Checked, NonNegativeFloat, PositiveFloat
 
 log = logging.getLogger("rover.preintegration")
 
 
 @dataclass(frozen=True)
-class PreintegrationParams:
-    gyro_noise_rad_s_rthz: float = math.radians(0.005)
+class PreintegrationParams(Checked):
+    gyro_noise_rad_s_rthz: PositiveFloat = math.radians(0.005)
     """gyro white-noise density (MicroStrain 3DM-GX4-45 datasheet)"""
-    accel_noise_m_s2_rthz: float = 100e-6 * 9.80665
+    accel_noise_m_s2_rthz: PositiveFloat = 100e-6 * 9.80665
     """accelerometer white-noise density (same datasheet)"""
-    stationary_s: float = 1.0
+    stationary_s: NonNegativeFloat = 1.0
     """how much still time at the start is used for the gyro bias and gravity"""
-    still_gyro_rad_s: float = 0.02
+    still_gyro_rad_s: PositiveFloat = 0.02
     """largest gyro spread (std, rad/s) that still counts as standing still"""
-    gap_factor: float = 5.0
+    gap_factor: PositiveFloat = 5.0
     """a sample interval this many times the nominal one is a gap (logged; integrated across)"""
-    accel_bias_m_s2: float = 2e-3 * 9.80665
+    accel_bias_m_s2: NonNegativeFloat = 2e-3 * 9.80665
     """accelerometer bias left unknown (1 sigma): a drift the noise densities alone do not show"""
-    gyro_bias_rad_s: float = math.radians(0.005)
+    gyro_bias_rad_s: NonNegativeFloat = math.radians(0.005)
     """gyro bias left after the stationary estimate (1 sigma)"""
 
 
@@ -145,36 +145,34 @@ class Preintegration(Operator):
         self.epoch_attitude: np.ndarray | None = None
         self.epoch_ns: int | None = None
         self.pending: list[tuple[int, np.ndarray, np.ndarray, int]] = []
-        self.dropped = {"duplicate": 0, "out of order": 0, "not finite": 0}
+        self.setup = RigInput()
         self.gaps = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "setup":
-            self._mounting(msg.setup_yaml)
+            self._mounting(msg)
         elif port == "imu":
             self._imu(msg, stamp_ns)
         else:
             yield from self._epoch(stamp_ns)
 
-    def _mounting(self, text: str) -> None:
-        try:
-            rig = rig_from_text(text, "RigSetup")
-        except SpecError as exc:
-            raise BadInput(f"rig description on the setup input: {exc.diagnostics[0]}") from None
+    def _mounting(self, msg: Any) -> None:
+        rig = self.setup.update(msg)
         self.mount = rpy_matrix(*np.radians(rig.imu.rotation_rpy_deg))
 
     def _imu(self, msg: Any, stamp: int) -> None:
         w = self.mount @ np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
         f = self.mount @ np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
         if not (np.isfinite(w).all() and np.isfinite(f).all()):
-            self.dropped["not finite"] += 1
+            self.drop("IMU samples that are not finite")
             return
         if self.last is not None and stamp <= self.last[0]:
-            self.dropped["duplicate" if stamp == self.last[0] else "out of order"] += 1
+            self.drop("duplicate IMU samples" if stamp == self.last[0] else "IMU samples out of order")
             return
         if self.attitude is None:
             self._initialize(stamp, w, f)
             return
+        assert self.last is not None, "set with the attitude"
         self.pending.append((*self.last, stamp))
         self.last = (stamp, w, f)
 
@@ -210,7 +208,7 @@ class Preintegration(Operator):
         dts = np.diff([s[0] for s in self.still]) / 1e9
         self.nominal_dt = float(np.median(dts)) if len(dts) else None
         self.epoch_attitude = self.attitude.copy()
-        self.pending = [(*a, b[0]) for a, b in zip(self.still[:-1], self.still[1:])]
+        self.pending = [(*a, b[0]) for a, b in zip(self.still[:-1], self.still[1:], strict=True)]
         self.last = self.still[-1]
         self.still = []
 
@@ -287,14 +285,20 @@ class Preintegration(Operator):
         inc = self.increment
         if self.epoch_ns is not None:
             r0 = self.epoch_attitude
+            assert r0 is not None, "set with the first epoch"
             dv = r0 @ inc.velocity + self.gravity * inc.dt
             dp = r0 @ inc.position + 0.5 * self.gravity * inc.dt**2
             frame = np.eye(9)
             frame[3:6, 3:6] = r0
             frame[6:9, 6:9] = r0
             cov = frame @ inc.with_biases(self.params.accel_bias_m_s2, self.params.gyro_bias_rad_s) @ frame.T
-            vec = lambda v: make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
-            quat = lambda r: make("geometry_msgs/msg/Quaternion", **dict(zip("xyzw", quaternion(r))))
+
+            def vec(v: np.ndarray) -> Any:
+                return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+            def quat(r: np.ndarray) -> Any:
+                return make("geometry_msgs/msg/Quaternion", **dict(zip("xyzw", quaternion(r), strict=True)))
+
             yield Emit(
                 "odometry",
                 make(
@@ -316,9 +320,6 @@ class Preintegration(Operator):
         self.increment = _Increment.zero()
 
     def on_end(self):
-        dropped = {k: v for k, v in self.dropped.items() if v}
-        if dropped:
-            log.warning("preintegration: dropped IMU samples: %s", ", ".join(f"{v} {k}" for k, v in dropped.items()))
         if self.attitude is None and self.still:
             log.warning(
                 "preintegration: the IMU stream ended during the stationary start (%d samples)", len(self.still)

@@ -12,15 +12,16 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from rover.geometry import quaternion_from_yaw, yaw_from_quaternion
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.slam.sliding_window import Edge, SlidingWindow, WindowSettings
+from rover.pipeline.params import PositiveFloat
 
 log = logging.getLogger("rover.slam")
 
@@ -34,25 +35,27 @@ COVARIANCE_FLOOR = 1e-12
 class SlamParams(WindowSettings):
     batch: bool = False
     """solve the whole run at once at its end (a reference for the sliding window), no live output"""
-    path_every_s: float = 10.0
+    path_every_s: PositiveFloat = 10.0
     """event time between path messages (the last one, at the end, is complete)"""
     wheel: bool = True
     """fuse the wheel odometry when the input is wired and carries data"""
-    aoa_std_scale: float = 4.0
+    aoa_std_scale: PositiveFloat = 4.0
     """multiplies each AoA's std: the operator's std describes one burst, but consecutive bursts of
     a tag share most of their multipath error, so each carries less information than its own std
     says (swept 1.5/2/3/4 over the eight robustness runs: 4 is best on average, 1.5 clearly worst)"""
-    wheel_max_age_s: float = 0.2
+    wheel_max_age_s: PositiveFloat = 0.2
     """a wheel speed older than this at an epoch is not used"""
 
 
 def yaw_of(q: Any) -> float:
-    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    """Yaw (rad) of a geometry_msgs/Quaternion."""
+    return float(yaw_from_quaternion(q.x, q.y, q.z, q.w))
 
 
 def pose_message(stamp: int, x: float, y: float, yaw: float) -> Any:
     position = make("geometry_msgs/msg/Point", x=x, y=y, z=0.0)
-    orientation = make("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    qx, qy, qz, qw = (float(v) for v in quaternion_from_yaw(yaw))
+    orientation = make("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw)
     return make(
         "geometry_msgs/msg/PoseStamped",
         header=header(stamp, "world"),
@@ -98,7 +101,6 @@ class Slam(Operator):
         self.window = SlidingWindow(WindowSettings(**settings))
         self.pending: dict[int, list[Any]] = {}
         self.channels: dict[int, int] = {}
-        self.dropped: Counter = Counter()
         self.finals_sent = 0
         self.last_path_ns: int | None = None
         self.speed: tuple[int, float] | None = None
@@ -115,13 +117,13 @@ class Slam(Operator):
             if math.isfinite(speed):
                 self.speed = (stamp_ns, speed)
             else:
-                self.dropped["wheel odometry with a non-finite speed"] += 1
+                self.drop("wheel odometry messages with a non-finite speed")
             return
         yield from self._odometry(msg, stamp_ns)
 
     def _bearing(self, msg: Any, stamp: int) -> None:
         if not (math.isfinite(msg.angle_rad) and math.isfinite(msg.std_rad) and msg.std_rad > 0):
-            self.dropped["AoAs with a non-finite angle or std"] += 1
+            self.drop("AoAs with a non-finite angle or std")
             return
         self.channels[msg.tag_id] = msg.channel
         self.pending.setdefault(stamp, []).append(msg)
@@ -130,7 +132,7 @@ class Slam(Operator):
         """The AoAs at this epoch; older ones that never became an epoch are counted as dropped."""
         late = [s for s in self.pending if s < stamp]
         for s in late:
-            self.dropped["AoAs without an IMU epoch"] += len(self.pending.pop(s))
+            self.drop("AoAs without an IMU epoch", len(self.pending.pop(s)))
         msgs = self.pending.pop(stamp, [])
         return (
             [m.tag_id for m in msgs],
@@ -147,7 +149,7 @@ class Slam(Operator):
         elif w.epochs and start != w.epochs[-1].stamp_ns:
             self.unchained += 1
         if msg.dt <= 0 or not np.isfinite(np.asarray(msg.covariance)).all():
-            self.dropped["odometry with no duration or a non-finite covariance"] += 1
+            self.drop("odometry increments with no duration or a non-finite covariance")
             return
         ids, angles, stds = self._take(stamp)
         w.add_epoch(stamp, yaw_of(msg.orientation), ids, angles, stds, edge_of(msg), self._speed_at(stamp))
@@ -201,7 +203,7 @@ class Slam(Operator):
         w = self.window
         observable = w.observable()
         tags = []
-        for i, (tag_id, (x, y)) in enumerate(zip(w.tag_ids, w.tag_positions())):
+        for i, (tag_id, (x, y)) in enumerate(zip(w.tag_ids, w.tag_positions(), strict=True)):
             cov = np.nan_to_num(w.tag_covariance[i], nan=1e12, posinf=1e12)
             tags.append(
                 make(
@@ -232,9 +234,7 @@ class Slam(Operator):
         w.finals.extend(w.poses())
         yield from self._finals(stamp)
         if self.pending:
-            self.dropped["AoAs after the last IMU epoch"] += sum(len(v) for v in self.pending.values())
-        if self.dropped:
-            log.warning("slam: dropped %s", ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items())))
+            self.drop("AoAs after the last IMU epoch", sum(len(v) for v in self.pending.values()))
         if self.params.wheel and self.speed is None:
             log.warning(
                 "slam: no wheel odometry arrived: the speed came from the IMU alone, which leaves the "

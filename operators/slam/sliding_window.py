@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Annotated, Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,51 +35,52 @@ from rover.operators.slam.window_program import (
     edge_matrix,
     prior_indices,
 )
+from rover.pipeline.params import Checked, Fraction, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt, Range
 
 
 @dataclass(frozen=True)
-class WindowSettings:
-    window: int = 30
+class WindowSettings(Checked):
+    window: Annotated[int, Range(ge=2)] = 30
     """epochs kept in the window; older ones are marginalized into the prior"""
-    huber_sigma: float = 1.5
+    huber_sigma: PositiveFloat = 1.5
     """AoA residuals beyond this many standard deviations count linearly (Huber)"""
-    hinge_weight: float = 10.0
+    hinge_weight: NonNegativeFloat = 10.0
     """cost per (distance / (d * sigma)) of a tag placed behind its bearing"""
-    reweight_passes: int = 3
+    reweight_passes: PositiveInt = 3
     """at most this many convex solves per update, each with the distances of the previous one"""
-    reweight_tolerance: float = 0.1
+    reweight_tolerance: PositiveFloat = 0.1
     """the passes stop once no distance to a tag not yet localized (inlier rows) changed by more than
     this fraction; for localized tags the distances of the last refined estimate are already right,
     and reweighting toward the convex solution would feed its short-range bias"""
-    refine_iterations: int = 3
+    refine_iterations: NonNegativeInt = 3
     """at most this many Gauss-Newton steps on the angle residual after the convex passes"""
-    refine_tolerance_m: float = 2e-3
+    refine_tolerance_m: PositiveFloat = 2e-3
     """the steps stop once no state moved by more than this"""
-    initial_range_m: float = 3.0
+    initial_range_m: PositiveFloat = 3.0
     """the distance guessed for a tag heard for the first time"""
-    min_range_m: float = 0.3
+    min_range_m: PositiveFloat = 0.3
     """floor of the distances in the AoA weights: no tag sits inside the robot"""
-    tag_prior_std_m: float = 30.0
+    tag_prior_std_m: PositiveFloat = 30.0
     """the prior on a newly heard tag, around its first bearing at `initial_range_m`"""
-    gauge_std_m: float = 1e-3
+    gauge_std_m: PositiveFloat = 1e-3
     """the first pose is the origin of the world frame"""
-    initial_velocity_std_m_s: float = 0.01
+    initial_velocity_std_m_s: PositiveFloat = 0.01
     """the robot starts from rest (the preintegration needs a still start for its gyro bias)"""
-    wheel_speed_std_m_s: float = 0.01
+    wheel_speed_std_m_s: PositiveFloat = 0.01
     """wheel odometry speed noise"""
-    wheel_scale_std: float = 0.03
+    wheel_scale_std: NonNegativeFloat = 0.03
     """wheel radius error, as a fraction of the speed"""
     nonholonomic: bool = True
     """a wheeled base does not move sideways: its velocity is along its heading (linear given the gyro's)"""
-    lateral_std_m_s: float = 0.02
+    lateral_std_m_s: PositiveFloat = 0.02
     """how fast the robot may slip sideways"""
-    reset_updates: int = 20
+    reset_updates: NonNegativeInt = 20
     """a localized tag whose bearings in the window mostly disagree with its estimate (Huber-active)
     for this many updates in a row has its prior relaxed: the Gaussian prior of a tag first seen
     through wrong-path bearings can otherwise hold it at the wrong place for good. 0 turns it off."""
-    reset_factor: float = 0.01
+    reset_factor: Fraction = 0.01
     """how much of the tag's prior information is kept at such a reset"""
-    observable_std_m: float = 0.5
+    observable_std_m: PositiveFloat = 0.5
     """a tag is reported localized once its position's largest standard deviation is below this"""
 
 
@@ -112,8 +114,8 @@ class Edge:
 
     def __post_init__(self) -> None:
         self.chol = np.linalg.cholesky(self.covariance)
-        l = edge_matrix(np.array([self.dt]))[0]
-        self.block = l.T @ np.linalg.solve(self.covariance, l)
+        lmat = edge_matrix(np.array([self.dt]))[0]
+        self.block = lmat.T @ np.linalg.solve(self.covariance, lmat)
 
 
 @dataclass
@@ -200,6 +202,13 @@ class SlidingWindow:
     resets: int = 0
 
     @property
+    def _prior(self) -> Prior:
+        """The prior, there from the first epoch on."""
+        if self.prior is None:
+            raise RuntimeError("the window has no epoch yet")
+        return self.prior
+
+    @property
     def shape(self) -> Shape:
         return Shape(len(self.epochs), self.slots, len(self.tag_ids))
 
@@ -239,7 +248,7 @@ class SlidingWindow:
             self.edges.append(edge)
         tags = self.tag_positions()
         slots = []
-        for tag_id, u in zip(tag_ids, bearing):
+        for tag_id, u in zip(tag_ids, bearing, strict=True):
             if tag_id not in self.tag_ids:
                 guess = state[0:2] + s.initial_range_m * u
                 self._add_tag(tag_id, guess)
@@ -261,7 +270,7 @@ class SlidingWindow:
 
     def _add_tag(self, tag_id: int, guess: np.ndarray) -> None:
         self.tag_ids.append(tag_id)
-        p = self.prior
+        p = self._prior
         n = len(p.mean)
         info = np.zeros((n + 2, n + 2))
         info[:n, :n] = p.info
@@ -326,7 +335,7 @@ class SlidingWindow:
         odometry = 0.5 * float(np.sum(np.einsum("nij,nj->ni", model.edge_whiten, r) ** 2))
         v = x[: 4 * len(self.epochs)].reshape(-1, 4)[:, 2:4]
         wheel = float(0.5 * np.einsum("ni,nij,nj->", v, model.velocity_info, v) - np.sum(model.velocity_linear * v))
-        p = self.prior
+        p = self._prior
         d = x[model.prior_index] - p.mean
         return (
             odometry
@@ -344,12 +353,12 @@ class SlidingWindow:
         shape = self.shape
         if self.program is None or self.program.shape != shape:
             self.program = WindowProgram(shape)
-        p = self.prior
+        p = self._prior
         model = self._model()
         c = np.zeros(shape.states)
         c[model.prior_index] = p.info @ p.mean - p.grad
         c[: 4 * shape.epochs].reshape(-1, 4)[:, 2:4] += model.velocity_linear
-        base = dict(
+        base: dict[str, Any] = dict(
             prior_info=p.info,
             velocity_info=model.velocity_info,
             c=c,
@@ -438,9 +447,9 @@ class SlidingWindow:
             elif mine.any():
                 self.disagreement[t] = 0
             if self.disagreement.get(t, 0) >= s.reset_updates:
-                keep = np.ones(len(self.prior.mean))
+                p = self._prior
+                keep = np.ones(len(p.mean))
                 keep[4 + 2 * t : 6 + 2 * t] = math.sqrt(s.reset_factor)
-                p = self.prior
                 self.prior = Prior(p.info * np.outer(keep, keep), p.mean, p.grad * keep)
                 self.disagreement[t] = 0
                 self.resets += 1
@@ -453,7 +462,7 @@ class SlidingWindow:
         pri = prior_indices(shape)
         rows = [np.repeat(pri, len(pri))]
         cols = [np.tile(pri, len(pri))]
-        vals = [self.prior.info.ravel()]
+        vals = [self._prior.info.ravel()]
         if self.edges:
             blocks = np.stack([e.block for e in self.edges])
             idx = 4 * np.arange(len(self.edges))[:, None] + np.arange(8)
@@ -512,7 +521,7 @@ class SlidingWindow:
         nt = len(self.tag_ids)
         x = self.x
         own = np.concatenate([np.arange(4), 4 * e + np.arange(2 * nt)])
-        p = self.prior
+        p = self._prior
         info = p.info.copy()
         grad = p.info @ (x[own] - p.mean) + p.grad
         info[2:4, 2:4] += old.velocity_info

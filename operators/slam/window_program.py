@@ -81,11 +81,11 @@ def edge_matrix(dt: np.ndarray) -> np.ndarray:
     """L for each edge: r_v = v_k+1 - v_k - dv, r_p = p_k+1 - p_k - v_k dt - dp."""
     n = len(dt)
     eye = np.eye(2)
-    l = np.zeros((n, 4, 8))
-    l[:, 0:2, 2:4], l[:, 0:2, 6:8] = -eye, eye
-    l[:, 2:4, 0:2], l[:, 2:4, 4:6] = -eye, eye
-    l[:, 2:4, 2:4] = -dt[:, None, None] * eye
-    return l
+    lmat = np.zeros((n, 4, 8))
+    lmat[:, 0:2, 2:4], lmat[:, 0:2, 6:8] = -eye, eye
+    lmat[:, 2:4, 0:2], lmat[:, 2:4, 4:6] = -eye, eye
+    lmat[:, 2:4, 2:4] = -dt[:, None, None] * eye
+    return lmat
 
 
 def prior_indices(shape: Shape) -> np.ndarray:

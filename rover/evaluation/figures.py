@@ -5,15 +5,20 @@ error CDF (Fig. 5a)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rover.evaluation.metrics import RunRecord, Truth, aoa_errors, poses_at, start_frame
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
 ELLIPSE_SIGMA = 2.0
 
 
-def _pyplot():
+def _pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend (imported on first use: it is slow to import)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -39,7 +44,7 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
         ax.annotate(f"tag {tag_id}{' (NLOS)' if nlos else ''}", p, textcoords="offset points", xytext=(6, 6))
     angle = np.linspace(0, 2 * np.pi, 60)
     circle = np.stack([np.cos(angle), np.sin(angle)])
-    for xy, cov in zip(run.tag_xy, run.tag_cov):
+    for xy, cov in zip(run.tag_xy, run.tag_cov, strict=True):
         if not np.isfinite(xy).all():
             continue
         values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
@@ -88,10 +93,10 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
     ax.legend(fontsize=8)
     written.append(_save(fig, out / "tag_error.png", plt))
 
-    error, nlos, _std = aoa_errors(run, truth)
+    error, aoa_nlos, _std = aoa_errors(run, truth)
     if len(error):
         fig, ax = plt.subplots(figsize=(5, 4))
-        for mask, label in ((~nlos, "LOS"), (nlos, "NLOS")):
+        for mask, label in ((~aoa_nlos, "LOS"), (aoa_nlos, "NLOS")):
             if mask.any():
                 e = np.sort(np.degrees(np.abs(error[mask])))
                 ax.plot(e, np.arange(1, len(e) + 1) / len(e), label=f"{label} (median {np.median(e):.1f} deg)")
@@ -103,7 +108,7 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
     return written
 
 
-def _save(fig, path: Path, plt) -> Path:
+def _save(fig: Figure, path: Path, plt: Any) -> Path:
     partial = path.with_name(f".{path.stem}.partial.png")
     fig.tight_layout()
     fig.savefig(partial, dpi=110)

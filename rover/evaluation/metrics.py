@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from rover.errors import BadInput
+from rover.geometry import wrap_angle, yaw_from_quaternion
 
 
 @dataclass(frozen=True)
@@ -32,14 +34,11 @@ class Rigid2D:
     translation: np.ndarray
 
     def apply(self, xy: np.ndarray) -> np.ndarray:
-        return xy @ self.rotation.T + self.translation
+        moved: np.ndarray = xy @ self.rotation.T + self.translation
+        return moved
 
 
-def yaw_from_quaternion(qx, qy, qz, qw):
-    return np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-
-
-def poses_of_messages(msgs: list) -> Poses2D:
+def poses_of_messages(msgs: list[Any]) -> Poses2D:
     """Planar poses of geometry_msgs/PoseStamped messages, in the given order."""
     q = np.array(
         [[m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w] for m in msgs]
@@ -169,21 +168,21 @@ def angle_stats(errors_rad: np.ndarray, std_rad: np.ndarray) -> dict[str, float]
     }
 
 
-def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
+def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict[str, Any]:
     """metrics.json: robot errors (both trajectories, unaligned and aligned), tag errors, AoA errors."""
     final = trajectory_errors(truth.trajectory, run.final, max_diff_s)
-    metrics: dict = {"robot": {"trajectory.tum": {"unaligned": final.unaligned, "aligned": final.aligned}}}
+    metrics: dict[str, Any] = {"robot": {"trajectory.tum": {"unaligned": final.unaligned, "aligned": final.aligned}}}
     if len(run.live.stamp_ns):
         live = trajectory_errors(truth.trajectory, run.live, max_diff_s)
         metrics["robot"]["trajectory_live.tum"] = {"unaligned": live.unaligned, "aligned": live.aligned}
     start = final.to_start
-    tags: dict[str, dict] = {}
-    for tag_id, xy, cov in zip(run.tag_ids, run.tag_xy, run.tag_cov):
+    tags: dict[str, dict[str, Any]] = {}
+    for tag_id, xy, cov in zip(run.tag_ids, run.tag_xy, run.tag_cov, strict=True):
         if int(tag_id) not in truth.tags:
             continue
         where, nlos = truth.tags[int(tag_id)]
         reference = start.apply(np.asarray(where)[None])[0]
-        entry = {"nlos": bool(nlos), "localized": bool(np.isfinite(xy).all())}
+        entry: dict[str, Any] = {"nlos": bool(nlos), "localized": bool(np.isfinite(xy).all())}
         if entry["localized"]:
             entry["error_m"] = float(np.linalg.norm(xy - reference))
             entry["aligned_error_m"] = float(np.linalg.norm(final.alignment.apply(xy[None])[0] - reference))
@@ -194,12 +193,12 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
     for kind, flag in (("los", False), ("nlos", True)):
         errors = [t["error_m"] for t in tags.values() if t["nlos"] == flag and "error_m" in t]
         metrics[f"{kind}_tags_mean_m"] = float(np.mean(errors)) if errors else None
-    error, nlos, std = aoa_errors(run, truth)
+    error, aoa_nlos, std = aoa_errors(run, truth)
     if len(error):
         metrics["aoa"] = {
             "all": angle_stats(error, std),
-            "los": angle_stats(error[~nlos], std[~nlos]),
-            "nlos": angle_stats(error[nlos], std[nlos]),
+            "los": angle_stats(error[~aoa_nlos], std[~aoa_nlos]),
+            "nlos": angle_stats(error[aoa_nlos], std[aoa_nlos]),
         }
     return metrics
 
@@ -207,7 +206,7 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict:
 def mahalanobis(error: np.ndarray, cov: np.ndarray) -> float | None:
     """How many standard deviations of `cov` the error vector is (None for a singular covariance)."""
     try:
-        return float(math.sqrt(max(error @ np.linalg.solve(cov, error), 0.0)))
+        return math.sqrt(max(float(error @ np.linalg.solve(cov, error)), 0.0))
     except np.linalg.LinAlgError:
         return None
 
@@ -223,7 +222,7 @@ def aoa_errors(run: RunRecord, truth: Truth) -> tuple[np.ndarray, np.ndarray, np
     where = np.array([truth.tags[int(i)][0] for i in ids[known]])
     true = np.arctan2(where[:, 1] - position[:, 1], where[:, 0] - position[:, 0]) - yaw
     return (
-        np.angle(np.exp(1j * (angles[known] - true))),
+        wrap_angle(angles[known] - true),
         np.array([truth.tags[int(i)][1] for i in ids[known]]),
         stds[known],
     )
@@ -233,9 +232,12 @@ PAPER_ROBOT_MEAN_M = 0.393
 PAPER_LOS_TAGS_MEAN_M = 0.746
 
 
-def render(metrics: dict) -> str:
+def render(metrics: dict[str, Any]) -> str:
     """The readable table of `rover eval` (the JSON is `metrics`)."""
-    cm = lambda v: "-" if v is None else f"{v * 100:.1f} cm"
+
+    def cm(v: float | None) -> str:
+        return "-" if v is None else f"{v * 100:.1f} cm"
+
     lines = [f"{'robot':<30}{'mean':>10}{'median':>10}{'rmse':>10}{'max':>10}{'poses':>7}"]
     for name, entry in metrics["robot"].items():
         for kind in ("unaligned", "aligned"):

@@ -22,9 +22,11 @@ from dataclasses import dataclass, field, fields
 from enum import Enum
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
+from numpy.typing import ArrayLike
 
 BFEE_CODE = 0xBB
 """Code byte of a beamforming report, the only record that carries CSI."""
@@ -64,7 +66,7 @@ _HEADER = np.dtype(
         ("rate", "<u2"),
     ]
 )
-assert _HEADER.itemsize == HEADER_BYTES
+assert _HEADER.itemsize == HEADER_BYTES and _HEADER.fields is not None
 _NRX_AT, _NTX_AT, _LEN_AT = (1 + _HEADER.fields[name][1] for name in ("nrx", "ntx", "len"))
 """Offsets of header fields from a record's code byte."""
 
@@ -137,7 +139,7 @@ def payload_bytes(nrx: np.ndarray | int, ntx: np.ndarray | int) -> np.ndarray | 
     return (SUBCARRIERS * (nrx * ntx * 16 + 3) + 7) // 8
 
 
-def antenna_perm(antenna_sel: np.ndarray | int) -> np.ndarray:
+def antenna_perm(antenna_sel: ArrayLike) -> np.ndarray:
     """perm (..., 3), 1-based, as read_bfee derives it: two bits of antenna_sel per chain."""
     sel = np.asarray(antenna_sel, dtype=np.int64)[..., None]
     return ((sel >> (2 * np.arange(MAX_CHAINS))) & 3) + 1
@@ -186,7 +188,8 @@ def _value_bits(nrx: int, ntx: int, sources: tuple[int, ...]) -> np.ndarray:
     chain = np.array(sources[:nrx])[None, :, None, None]
     stream = np.arange(ntx)[None, None, :, None]
     part = np.arange(2)[None, None, None, :]
-    return (3 * (i + 1) + 16 * (i * nrx * ntx + chain * ntx + stream) + 8 * part).ravel()
+    bits: np.ndarray = (3 * (i + 1) + 16 * (i * nrx * ntx + chain * ntx + stream) + 8 * part).ravel()
+    return bits
 
 
 @dataclass(frozen=True)
@@ -230,7 +233,7 @@ def _unpack(buf: np.ndarray, payload_at: np.ndarray, nrx: int, ntx: int, sources
     even = rows[:, : 2 * layout.n_even].view("<u2")
     odd = rows[:, 1 : 1 + (layout.span - 1) // 2 * 2].view("<u2")
     words = np.concatenate([even, odd], axis=1)
-    values = np.take(words, layout.column, axis=1) >> layout.shift
+    values: np.ndarray = np.take(words, layout.column, axis=1) >> layout.shift
     return values.astype(np.uint8).view(np.int8).astype(np.float64)
 
 
@@ -251,7 +254,8 @@ def _scale_factors(
         scale = 10 ** (rss_dbm / 10) / (power / SUBCARRIERS)
         noise_dbm = np.where(noise == NOISE_UNKNOWN_DB, NOISE_FLOOR_DB, noise).astype(np.float64)
         total_noise = 10 ** (noise_dbm / 10) + scale * (nrx.astype(np.float64) * ntx)
-        return np.sqrt(scale / total_noise) * NTX_AMPLITUDE_CORRECTION[ntx]
+        amplitude: np.ndarray = np.sqrt(scale / total_noise) * NTX_AMPLITUDE_CORRECTION[ntx]
+        return amplitude
 
 
 def _empty_records(scaled: bool) -> CsiRecords:
@@ -337,12 +341,14 @@ def _consistent_headers(buf: np.ndarray, at: np.ndarray) -> np.ndarray:
     nrx = buf[at + _NRX_AT].astype(np.int64)
     ntx = buf[at + _NTX_AT].astype(np.int64)
     in_range = (nrx >= 1) & (nrx <= MAX_CHAINS) & (ntx >= 1) & (ntx <= MAX_CHAINS)
-    return in_range & (_len_field(buf, at) == payload_bytes(nrx, ntx))
+    consistent: np.ndarray = in_range & (_len_field(buf, at) == payload_bytes(nrx, ntx))
+    return consistent
 
 
 def _len_field(buf: np.ndarray, at: np.ndarray | int) -> np.ndarray:
     """The `len` header field of the records whose code bytes are at `at`."""
-    return buf[at + _LEN_AT].astype(np.int64) | (buf[at + _LEN_AT + 1].astype(np.int64) << 8)
+    value: np.ndarray = buf[at + _LEN_AT].astype(np.int64) | (buf[at + _LEN_AT + 1].astype(np.int64) << 8)
+    return value
 
 
 def _valid_starts(buf: np.ndarray, lo: int, hi: int) -> np.ndarray:
@@ -354,7 +360,8 @@ def _valid_starts(buf: np.ndarray, lo: int, hi: int) -> np.ndarray:
     p = lo + np.flatnonzero(buf[lo + LENGTH_BYTES : hi + LENGTH_BYTES] == BFEE_CODE)
     length = (buf[p].astype(np.int64) << 8) | buf[p + 1]
     code_at = p + LENGTH_BYTES
-    return p[_consistent_headers(buf, code_at) & (length == 1 + HEADER_BYTES + _len_field(buf, code_at))]
+    found: np.ndarray = p[_consistent_headers(buf, code_at) & (length == 1 + HEADER_BYTES + _len_field(buf, code_at))]
+    return found
 
 
 @dataclass
@@ -502,7 +509,7 @@ class _FramingPass:
         if cut_short or stop > self.end:
             if not cut_short and not self.final:
                 return False
-            resume = inner if cut_short else self.end
+            resume = inner if cut_short and inner is not None else self.end
             if kind is _Kind.OTHER:
                 out.garbage += resume - p
             else:
@@ -644,7 +651,7 @@ def concat(parts: Sequence[CsiRecords]) -> CsiRecords:
     nrx_max = max(p.csi.shape[2] for p in parts)
     ntx_max = max(p.csi.shape[3] for p in parts)
     csi = [np.pad(p.csi, ((0, 0), (0, 0), (0, nrx_max - p.csi.shape[2]), (0, ntx_max - p.csi.shape[3]))) for p in parts]
-    joined = {
+    joined: dict[str, Any] = {
         f.name: np.concatenate([getattr(p, f.name) for p in parts])
         for f in fields(CsiRecords)
         if f.name not in ("csi", "scaled") and not f.name.startswith("n_")

@@ -12,15 +12,15 @@ from typing import Any
 
 import numpy as np
 
-from rover.errors import Diagnostic, SpecError
+from rover.errors import BadInput, Diagnostic, SpecError
 from rover.formats.wifi import INTEL5300_CHANNELS_5GHZ, channel_freq_hz, freq_channel
+from rover.pipeline import params as P
 from rover.pipeline.spec import did_you_mean, read_document
 from rover.pipeline.yamlpos import Located, load
 
 TOP_KEYS = ("receiver", "excitation", "tags", "topics", "imu", "sweep")
 RECEIVER_KEYS = ("antenna_positions_m", "phase_offsets_rad", "interface")
 TAG_KEYS = ("id", "channel", "shift_hz", "name")
-IMU_KEYS = ("frame_id", "rate_hz", "rotation_rpy_deg", "position_m")
 DEFAULT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
 
 
@@ -34,11 +34,20 @@ class TagSpec:
 
 
 @dataclass(frozen=True)
-class ImuMount:
+class ImuMount(P.Checked):
+    """The `imu:` section: how the IMU sits on the robot (rotation as roll, pitch, yaw in degrees)."""
+
     frame_id: str = "imu_link"
-    rate_hz: float | None = None
+    rate_hz: P.PositiveFloat | None = None
     rotation_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Sweep(P.Checked):
+    """The `sweep:` section: the dwell per channel the receiver used, when the setup knows it."""
+
+    dwell_s: P.PositiveFloat | None = None
 
 
 @dataclass(frozen=True)
@@ -71,10 +80,10 @@ class _Reader:
         self.errors: list[Diagnostic] = []
         self.warnings: list[Diagnostic] = []
 
-    def error(self, path: tuple, message: str, key: bool = False) -> None:
+    def error(self, path: tuple[Any, ...], message: str, key: bool = False) -> None:
         self.errors.append(self.doc.diag(path, message, key=key))
 
-    def section(self, data: Any, path: tuple, allowed: tuple[str, ...], what: str) -> dict:
+    def section(self, data: Any, path: tuple[Any, ...], allowed: tuple[str, ...], what: str) -> dict[Any, Any]:
         if data is None:
             return {}
         if not isinstance(data, dict):
@@ -89,15 +98,42 @@ class _Reader:
                 )
         return data
 
-    def numbers(self, value: Any, path: tuple, what: str, length: int | None = None) -> list[float] | None:
-        ok = isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-        if not ok or (length is not None and len(value) != length):
+    def numbers(self, value: Any, path: tuple[Any, ...], what: str, length: int | None = None) -> list[float] | None:
+        try:
+            row = P.coerce(value, list[float])
+        except P.ParamTypeError:
+            row = None
+        if row is None or (length is not None and len(row) != length):
             size = f"{length} " if length is not None else ""
-            self.error(path, f"{what} must be a list of {size}numbers, got {value!r}")
+            self.error(path, f"{what} must be a list of {size}finite numbers, got {value!r}")
             return None
-        return [float(v) for v in value]
+        return list(row)
 
-    def channel(self, value: Any, path: tuple, what: str) -> int | None:
+    def bind(self, data: Any, path: tuple[Any, ...], cls: type) -> Any:
+        """A section bound to its dataclass (unknown keys warned about and left out), or None after reporting."""
+        what = ".".join(map(str, path))
+        known = tuple(P.fields(cls))
+        values = {k: v for k, v in self.section(data, path, known, what).items() if k in known}
+        wording = P.Wording(
+            unknown=lambda key: f"unknown key {key!r} in {what}",
+            ill_typed=lambda key: f"{what}.{key}",
+            missing=lambda key, _label: f"{what} needs {key}",
+        )
+
+        def report(sub: tuple[Any, ...], message: str, at_key: bool) -> None:
+            self.error(path + sub, message, key=at_key and bool(sub))
+
+        return P.bind(cls, values, wording, report)
+
+    def positive(self, value: Any, path: tuple[Any, ...], what: str) -> float | None:
+        """A positive finite number, or None after reporting it."""
+        try:
+            return float(P.coerce(value, P.PositiveFloat))
+        except P.ParamTypeError as exc:
+            self.error(path, f"{what}: {exc}")
+            return None
+
+    def channel(self, value: Any, path: tuple[Any, ...], what: str) -> int | None:
         try:
             channel_freq_hz(value)
             if isinstance(value, int) and not isinstance(value, bool):
@@ -127,7 +163,7 @@ def parse_rig(doc: Located) -> Rig:
             for i, p in enumerate(positions)
         ]
         if all(row is not None and len(row) in (2, 3) for row in rows):
-            antennas = np.array([row[:2] for row in rows])
+            antennas = np.array([row[:2] for row in rows if row is not None])
         elif all(row is not None for row in rows):
             r.error(("receiver", "antenna_positions_m"), "antenna positions are [x, y] (or [x, y, z]) in metres")
 
@@ -174,37 +210,19 @@ def parse_rig(doc: Located) -> Rig:
         if spec is not None:
             tags.append(spec)
 
-    topics = dict(DEFAULT_TOPICS)
+    topics: dict[str, str | None] = dict(DEFAULT_TOPICS)
     for key, value in r.section(top.get("topics"), ("topics",), tuple(DEFAULT_TOPICS), "topics").items():
         if value is not None and not (isinstance(value, str) and value.startswith("/")):
             r.error(("topics", key), f"topic {key} must be a name starting with '/' or null, got {value!r}")
         else:
             topics[key] = value
 
-    imu_raw = r.section(top.get("imu"), ("imu",), IMU_KEYS, "imu")
-    imu = ImuMount()
-    if imu_raw:
-        rpy = r.numbers(imu_raw.get("rotation_rpy_deg", [0, 0, 0]), ("imu", "rotation_rpy_deg"), "rotation_rpy_deg", 3)
-        pos = r.numbers(imu_raw.get("position_m", [0, 0, 0]), ("imu", "position_m"), "position_m", 3)
-        rate = imu_raw.get("rate_hz")
-        if rate is not None and not (isinstance(rate, (int, float)) and rate > 0):
-            r.error(("imu", "rate_hz"), f"imu.rate_hz must be a positive number, got {rate!r}")
-            rate = None
-        imu = ImuMount(
-            str(imu_raw.get("frame_id", "imu_link")),
-            float(rate) if rate else None,
-            tuple(rpy or (0.0, 0.0, 0.0)),
-            tuple(pos or (0.0, 0.0, 0.0)),
-        )
-
-    sweep = r.section(top.get("sweep"), ("sweep",), ("dwell_s",), "sweep")
-    dwell = sweep.get("dwell_s")
-    if dwell is not None and not (isinstance(dwell, (int, float)) and dwell > 0):
-        r.error(("sweep", "dwell_s"), f"sweep.dwell_s must be a positive number, got {dwell!r}")
-        dwell = None
+    imu = r.bind(top.get("imu"), ("imu",), ImuMount) or ImuMount()
+    sweep = r.bind(top.get("sweep"), ("sweep",), Sweep) or Sweep()
 
     if r.errors:
         raise SpecError(r.errors + r.warnings)
+    assert exc_channel is not None, "a missing or bad excitation channel is reported above"
     interface = receiver.get("interface", "wlan0")
     return Rig(
         antennas,
@@ -214,13 +232,15 @@ def parse_rig(doc: Located) -> Rig:
         str(interface),
         topics,
         imu,
-        float(dwell) if dwell else None,
+        sweep.dwell_s,
         "",
         tuple(r.warnings),
     )
 
 
-def _tag(r: _Reader, path: tuple, tag_id: int, tag: dict, exc_channel: int | None) -> TagSpec | None:
+def _tag(
+    r: _Reader, path: tuple[Any, ...], tag_id: int, tag: dict[Any, Any], exc_channel: int | None
+) -> TagSpec | None:
     channel = r.channel(tag["channel"], path + ("channel",), f"tag {tag_id} channel") if "channel" in tag else None
     shift = tag.get("shift_hz")
     if "channel" in tag and channel is None:
@@ -229,8 +249,7 @@ def _tag(r: _Reader, path: tuple, tag_id: int, tag: dict, exc_channel: int | Non
         return None
     f_c = channel_freq_hz(exc_channel)
     if shift is not None:
-        if not (isinstance(shift, (int, float)) and shift > 0):
-            r.error(path + ("shift_hz",), f"tag {tag_id} shift_hz must be a positive frequency in Hz")
+        if r.positive(shift, path + ("shift_hz",), f"tag {tag_id} shift_hz (Hz)") is None:
             return None
         sides = [c for c in (freq_channel(f_c - shift), freq_channel(f_c + shift)) if c in INTEL5300_CHANNELS_5GHZ]
         if channel is None:
@@ -256,6 +275,28 @@ def _tag(r: _Reader, path: tuple, tag_id: int, tag: dict, exc_channel: int | Non
 def rig_from_text(text: str, file: str = "setup.yaml") -> Rig:
     """Parse and check a rig description given as YAML text (a RigSetup message, MCAP metadata)."""
     return replace(parse_rig(load(text, file)), text=text)
+
+
+def rig_from_message(msg: Any) -> Rig:
+    """The rig of a RigSetup message; a description that does not check is BadInput with its first problem."""
+    try:
+        return rig_from_text(msg.setup_yaml, "RigSetup")
+    except SpecError as exc:
+        raise BadInput(f"rig description on the setup input: {exc.diagnostics[0]}") from None
+
+
+class RigInput:
+    """An operator's `setup` input: the rig of the latest RigSetup message, parsed again only when
+    its text changes (a replay or a live driver may repeat the same description)."""
+
+    def __init__(self) -> None:
+        self.rig: Rig | None = None
+
+    def update(self, msg: Any) -> Rig:
+        """The rig `msg` describes (BadInput when it does not check; the previous rig is then kept)."""
+        if self.rig is None or msg.setup_yaml != self.rig.text:
+            self.rig = rig_from_message(msg)
+        return self.rig
 
 
 def load_rig(path: str | Path) -> Rig:

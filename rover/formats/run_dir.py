@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from rover.errors import BadInput
-from rover.evaluation.metrics import Poses2D, RunRecord, Truth, yaw_from_quaternion
-from rover.formats.truth import Trajectory, read_dataset_truth, read_tags_csv, read_tum
+from rover.evaluation.metrics import Poses2D, RunRecord, Truth
+from rover.formats.truth import Trajectory, TruthTag, read_dataset_truth, read_tags_csv, read_tum
+from rover.geometry import yaw_from_quaternion
 
 RUN_FILE = "run.json"
 """names the dataset a run read, so `rover eval` finds its truth"""
@@ -42,27 +43,21 @@ def _read_tags(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(ids, dtype=int), np.array(xy).reshape(-1, 2), np.array(cov).reshape(-1, 2, 2)
 
 
-def _read_results(path: Path):
+def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]], list[tuple[int, int, float, float]]]:
     """Tag estimates over time and the AoAs from results.mcap (empty when the file is absent)."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
+    from rover.formats.bag import iter_messages
     from rover.messages import deserialize
 
     history: list[tuple[int, int, float, float, bool]] = []
     aoa: list[tuple[int, int, float, float]] = []
     if path.exists():
-        try:
-            with path.open("rb") as f:
-                for schema, channel, m in make_reader(f).iter_messages(topics=["/rover/tags", "/rover/aoa"]):
-                    msg = deserialize(m.data, schema.name)
-                    stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-                    if channel.topic == "/rover/aoa":
-                        aoa.append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
-                    else:
-                        history += [(stamp, t.id, t.position.x, t.position.y, t.observable) for t in msg.tags]
-        except (OSError, McapError) as exc:
-            raise BadInput(f"{path}: cannot read: {exc}") from None
+        for m in iter_messages(path, ["/rover/tags", "/rover/aoa"], failure="cannot read"):
+            msg = deserialize(m.data, m.schema)
+            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            if m.topic == "/rover/aoa":
+                aoa.append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
+            else:
+                history += [(stamp, t.id, t.position.x, t.position.y, t.observable) for t in msg.tags]
     return history, aoa
 
 
@@ -124,6 +119,8 @@ def run_dataset(run_dir: str | Path) -> Path | None:
 def load_truth(source: str | Path, tags_csv: str | Path | None = None) -> Truth | None:
     """Ground truth from a dataset (MCAP file or bag directory) or a TUM file (with a tags CSV)."""
     source = Path(source)
+    trajectory: Trajectory | None
+    tags: list[TruthTag]
     if source.suffix in (".tum", ".txt"):
         trajectory, tags = read_tum(source), []
     else:

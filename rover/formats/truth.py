@@ -98,32 +98,22 @@ def parse_tags_csv(text: str, source: str) -> list[TruthTag]:
 def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthTag]]:
     """The ground truth a dataset carries: `/groundtruth/pose` and the tags (metadata `rover.truth`,
     else `/groundtruth/tags`); (None, []) when it has none."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
+    from rover.formats.bag import BagReader
     from rover.messages import deserialize
 
     path = Path(path)
     stamps, xyz, quat, tags = [], [], [], []
-    try:
-        with path.open("rb") as f:
-            reader = make_reader(f)
-            meta = {m.name: m.metadata for m in reader.iter_metadata()}
-            for schema, channel, message in reader.iter_messages(
-                topics=["/groundtruth/pose", "/groundtruth/tags"], log_time_order=False
-            ):
-                msg = deserialize(message.data, schema.name)
-                if channel.topic == "/groundtruth/tags":
-                    tags = [
-                        TruthTag(t.id, t.channel, (t.position.x, t.position.y, t.position.z), False) for t in msg.tags
-                    ]
-                    continue
-                p, q = msg.pose.position, msg.pose.orientation
-                stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
-                xyz.append((p.x, p.y, p.z))
-                quat.append((q.x, q.y, q.z, q.w))
-    except (OSError, McapError) as exc:
-        raise BadInput(f"{path}: cannot read the dataset's ground truth: {exc}") from None
+    with BagReader(path, "cannot read the dataset's ground truth") as bag:
+        meta = bag.metadata()
+        for message in bag.messages(["/groundtruth/pose", "/groundtruth/tags"], log_time_order=False):
+            msg = deserialize(message.data, message.schema)
+            if message.topic == "/groundtruth/tags":
+                tags = [TruthTag(t.id, t.channel, (t.position.x, t.position.y, t.position.z), False) for t in msg.tags]
+                continue
+            p, q = msg.pose.position, msg.pose.orientation
+            stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+            xyz.append((p.x, p.y, p.z))
+            quat.append((q.x, q.y, q.z, q.w))
     if "tags_csv" in meta.get("rover.truth", {}):
         tags = parse_tags_csv(meta["rover.truth"]["tags_csv"], f"{path} (metadata rover.truth)")
     order = np.argsort(np.array(stamps, dtype=np.int64), kind="stable")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from rover.pipeline.validation import Pipeline
 
 
@@ -16,7 +18,7 @@ def _groups(pipeline: Pipeline) -> dict[str | None, list[str]]:
     return groups
 
 
-def _edges(pipeline: Pipeline):
+def _edges(pipeline: Pipeline) -> Iterator[tuple[str, str, str, str]]:
     for node in pipeline.nodes.values():
         for port, wire in node.spec.inputs.items():
             source = pipeline.nodes[wire.source]

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from rover.errors import BadInput, Diagnostic
+from rover.pipeline import params as P
 from rover.pipeline.yamlpos import Located, load
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
@@ -21,10 +22,24 @@ ENDPOINT_RE = re.compile(
     r"^(?:(?:tcp|udp|tls|quic|ws)/(?:\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+):\d{1,5}|unixsock-stream/.+)(?:#.*)?$"
 )
 
+PORT_RE = re.compile(r":(\d{1,5})$")
+MAX_PORT = 65535
+
 TOP_KEYS = ("version", "name", "description", "vars", "hosts", "operators")
 HOST_KEYS = ("listen", "connect", "connect_timeout_s")
 OPERATOR_KEYS = ("uses", "host", "inputs", "params", "description")
 DEFAULT_CONNECT_TIMEOUT_S = 10.0
+
+
+def endpoint_problem(endpoint: Any) -> str | None:
+    """Why `endpoint` is not a Zenoh endpoint Rover can use, or None."""
+    example = "expected PROTOCOL/ADDRESS:PORT, e.g. 'tcp/127.0.0.1:7447'"
+    if not (isinstance(endpoint, str) and ENDPOINT_RE.match(endpoint)):
+        return f"bad endpoint {endpoint!r}: {example}"
+    port = PORT_RE.search(endpoint.split("#")[0])
+    if port and not 1 <= int(port.group(1)) <= MAX_PORT:
+        return f"bad endpoint {endpoint!r}: port {int(port.group(1))} is outside 1-{MAX_PORT}"
+    return None
 
 
 def did_you_mean(word: str, candidates: Any) -> str:
@@ -60,6 +75,8 @@ class OperatorSpec:
     host: str | None = None
     inputs: dict[str, Wire] = field(default_factory=dict)
     params: dict[str, Any] = field(default_factory=dict)
+    set_params: dict[str, Any] = field(default_factory=dict)
+    """params given on the command line (`--set OPERATOR.PARAM=VALUE`), already merged into `params`"""
 
 
 @dataclass
@@ -72,6 +89,13 @@ class PipelineSpec:
     hosts: dict[str, HostSpec]
     operators: dict[str, OperatorSpec]
     doc: Located
+    set_vars: dict[str, Any] = field(default_factory=dict)
+    """variables given on the command line (`--set NAME=VALUE`, `--dataset`, `--output`, `--speed`)"""
+
+    def command_line(self) -> dict[str, Any]:
+        """What the command line changed: `{"vars": {...}, "params": {"OPERATOR.PARAM": value}}`, for run.json."""
+        params = {f"{op.name}.{k}": v for op in self.operators.values() for k, v in op.set_params.items()}
+        return {"vars": dict(self.set_vars), "params": params}
 
     def operators_on(self, host: str | None) -> list[OperatorSpec]:
         return [op for op in self.operators.values() if host is None or op.host == host]
@@ -82,10 +106,10 @@ class _Collector:
         self.doc = doc
         self.problems: list[Diagnostic] = []
 
-    def add(self, path: tuple, message: str, *, key: bool = False) -> None:
+    def add(self, path: tuple[Any, ...], message: str, *, key: bool = False) -> None:
         self.problems.append(self.doc.diag(path, message, key=key))
 
-    def mapping(self, value: Any, path: tuple, what: str) -> dict:
+    def mapping(self, value: Any, path: tuple[Any, ...], what: str) -> dict[Any, Any]:
         if value is None:
             return {}
         if not isinstance(value, dict):
@@ -93,19 +117,19 @@ class _Collector:
             return {}
         return value
 
-    def known_keys(self, value: dict, path: tuple, allowed: tuple[str, ...], what: str) -> None:
+    def known_keys(self, value: dict[Any, Any], path: tuple[Any, ...], allowed: tuple[str, ...], what: str) -> None:
         for key in value:
             if key not in allowed:
                 self.add(path + (key,), f"unknown key {key!r} in {what}{did_you_mean(key, allowed)}", key=True)
 
-    def string(self, value: Any, path: tuple, what: str) -> str | None:
+    def string(self, value: Any, path: tuple[Any, ...], what: str) -> str | None:
         if isinstance(value, str) and value:
             return value
         self.add(path, f"{what} must be a non-empty string")
         return None
 
 
-def _substitute(value: Any, path: tuple, variables: dict[str, Any], col: _Collector) -> Any:
+def _substitute(value: Any, path: tuple[Any, ...], variables: dict[str, Any], col: _Collector) -> Any:
     if isinstance(value, dict):
         return {k: _substitute(v, path + (k,), variables, col) for k, v in value.items()}
     if isinstance(value, list):
@@ -148,10 +172,19 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
     for key in variables:
         if not (isinstance(key, str) and key.isidentifier()):
             col.add(("vars", key), f"variable name {key!r} must be an identifier", key=True)
+    set_vars: dict[str, Any] = {}
+    set_params: dict[str, dict[str, Any]] = {}
     for key, value in (overrides or {}).items():
+        if "." in key:
+            op_name, _, param = key.partition(".")
+            if not (op_name and param.isidentifier()):
+                raise BadInput(f"--set {key}=...: expected OPERATOR.PARAM=VALUE, e.g. slam.wheel=false")
+            set_params.setdefault(op_name, {})[param] = value
+            continue
         if key not in variables and not key.isidentifier():
-            raise BadInput(f"--set {key}=...: variable names are identifiers")
+            raise BadInput(f"--set {key}=...: variable names are identifiers (OPERATOR.PARAM sets a param)")
         variables[key] = value
+        set_vars[key] = value
 
     hosts: dict[str, HostSpec] = {}
     for hname, hval in col.mapping(top.get("hosts"), ("hosts",), "hosts").items():
@@ -170,17 +203,15 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                 col.add(path + (kind,), f"{kind} must be a list of endpoints like 'tcp/127.0.0.1:7447'")
                 continue
             for i, ep in enumerate(endpoints):
-                if not (isinstance(ep, str) and ENDPOINT_RE.match(ep)):
-                    col.add(
-                        path + (kind, i), f"bad endpoint {ep!r}: expected PROTOCOL/ADDRESS, e.g. 'tcp/127.0.0.1:7447'"
-                    )
+                problem = endpoint_problem(ep)
+                if problem:
+                    col.add(path + (kind, i), problem)
                 else:
                     getattr(host, kind).append(ep)
-        timeout = hval.get("connect_timeout_s", DEFAULT_CONNECT_TIMEOUT_S)
-        if isinstance(timeout, (int, float)) and not isinstance(timeout, bool) and timeout > 0:
-            host.connect_timeout_s = float(timeout)
-        else:
-            col.add(path + ("connect_timeout_s",), f"connect_timeout_s must be a positive number, got {timeout!r}")
+        try:
+            host.connect_timeout_s = P.coerce(hval.get("connect_timeout_s", DEFAULT_CONNECT_TIMEOUT_S), P.PositiveFloat)
+        except P.ParamTypeError as exc:
+            col.add(path + ("connect_timeout_s",), f"connect_timeout_s: {exc}")
         hosts[hname] = host
 
     operators: dict[str, OperatorSpec] = {}
@@ -197,11 +228,11 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
         uses = col.string(oval.get("uses"), path + ("uses",), f"operator {oname!r}: uses") if "uses" in oval else None
         if "uses" not in oval:
             col.add(path, f"operator {oname!r} has no 'uses:' (a built-in name or a dotted path to a class)", key=True)
-        host = oval.get("host")
-        if host is not None and not isinstance(host, str):
+        host_name = oval.get("host")
+        if host_name is not None and not isinstance(host_name, str):
             col.add(path + ("host",), "host must be a host name")
-            host = None
-        spec = OperatorSpec(oname, uses or "", host)
+            host_name = None
+        spec = OperatorSpec(oname, uses or "", host_name)
         for port, src in col.mapping(oval.get("inputs"), path + ("inputs",), "inputs").items():
             src = _substitute(src, path + ("inputs", port), variables, col)
             if not (isinstance(src, str) and src.count("/") == 1 and all(src.split("/"))):
@@ -212,9 +243,18 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
         spec.params = _substitute(
             col.mapping(oval.get("params"), path + ("params",), "params"), path + ("params",), variables, col
         )
+        spec.set_params = set_params.pop(oname, {})
+        spec.params.update(spec.set_params)
         operators[oname] = spec
 
-    return PipelineSpec(doc.file, name, variables, hosts, operators, doc), col.problems
+    for op_name, values in set_params.items():
+        for param in values:
+            col.add(
+                ("operators",),
+                f"--set {op_name}.{param}: the pipeline has no operator {op_name!r}{did_you_mean(op_name, raw_ops)}",
+                key=True,
+            )
+    return PipelineSpec(doc.file, name, variables, hosts, operators, doc, set_vars), col.problems
 
 
 def read_document(path: str | Path) -> Located:

@@ -14,10 +14,11 @@ from typing import Any
 
 from rover.errors import Diagnostic, SpecError
 from rover.messages import ANY
-from rover.operator import In, Operator, Source
+from rover.operator import In, Operator, RunContext, Source
 from rover.pipeline import params as P
 from rover.pipeline.resolve import UnknownOperator, resolve
 from rover.pipeline.spec import OperatorSpec, PipelineSpec, Wire, did_you_mean, parse, read_document
+from rover.pipeline.yamlpos import Located
 
 
 @dataclass
@@ -27,6 +28,7 @@ class Node:
     spec: OperatorSpec
     cls: type[Operator]
     params: Any
+    context: RunContext = RunContext()
 
     @property
     def name(self) -> str:
@@ -40,7 +42,9 @@ class Node:
         return self.cls.outputs[port].type
 
     def build(self) -> Operator:
-        return self.cls(self.params)
+        op = self.cls(self.params)
+        op.context = self.context
+        return op
 
 
 @dataclass
@@ -72,7 +76,7 @@ class Pipeline:
         return f"{self.spec.file}: ok: pipeline {self.name!r}, {len(self.nodes)} operators, {wires} wires, {where}"
 
 
-def _params(doc, spec: OperatorSpec, cls: type[Operator], problems: list[Diagnostic]) -> Any:
+def _params(doc: Located, spec: OperatorSpec, cls: type[Operator], problems: list[Diagnostic]) -> Any:
     base = ("operators", spec.name, "params")
     wording = P.Wording(
         unknown=lambda key: f"operator {spec.name!r} ({spec.uses}) has no param {key!r}",
@@ -81,13 +85,20 @@ def _params(doc, spec: OperatorSpec, cls: type[Operator], problems: list[Diagnos
         known_list=True,
     )
 
-    def report(path: tuple, message: str, at_key: bool) -> None:
+    def report(path: tuple[Any, ...], message: str, at_key: bool) -> None:
+        if path and path[0] in spec.set_params:
+            message = f"--set {spec.name}.{path[0]}={spec.set_params[path[0]]!r}: {message}"
+            in_file = base + path[:1] in doc.keys
+            problems.append(doc.diag(base + path[:1] if in_file else ("operators", spec.name), message, key=True))
+            return
         problems.append(doc.diag(base + path if path else ("operators", spec.name), message, key=at_key))
 
     return P.bind(cls.Params, spec.params, wording, report)
 
 
-def _check_ports(doc, nodes: dict[str, Node], specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
+def _check_ports(
+    doc: Located, nodes: dict[str, Node], specs: dict[str, OperatorSpec], problems: list[Diagnostic]
+) -> None:
     for node in nodes.values():
         base = ("operators", node.name, "inputs")
         cls = node.cls
@@ -151,7 +162,7 @@ def _check_ports(doc, nodes: dict[str, Node], specs: dict[str, OperatorSpec], pr
             )
 
 
-def _check_cycles(doc, specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
+def _check_cycles(doc: Located, specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
     WHITE, GREY, BLACK = 0, 1, 2
     state = {name: WHITE for name in specs}
     stack: list[str] = []
@@ -208,7 +219,7 @@ def _reaches(connect: str, listen: str) -> bool:
     return ch == lh or _is_wildcard(lh) or not _is_ip(ch) or not _is_ip(lh)
 
 
-def _check_hosts(doc, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
+def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
     hosts = spec.hosts
     for op in spec.operators.values():
         path = ("operators", op.name, "host")
@@ -232,7 +243,7 @@ def _check_hosts(doc, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
             )
     if len(hosts) < 2:
         return
-    links = {h: set() for h in hosts}
+    links: dict[str, set[str]] = {h: set() for h in hosts}
     for a in hosts.values():
         raw = (doc.data.get("hosts") or {}).get(a.name) or {}
         if not a.listen and not a.connect and not ({"listen", "connect"} & set(raw)):
@@ -278,6 +289,7 @@ def check(spec: PipelineSpec, builtins: Mapping[str, str], problems: list[Diagno
     problems = list(problems or [])
     doc = spec.doc
     nodes: dict[str, Node] = {}
+    context = RunContext(spec.file, spec.name, spec.command_line())
     for op in spec.operators.values():
         try:
             cls = resolve(op.uses, builtins)
@@ -285,7 +297,7 @@ def check(spec: PipelineSpec, builtins: Mapping[str, str], problems: list[Diagno
             hint = did_you_mean(op.uses, builtins) if "." not in op.uses else ""
             problems.append(doc.diag(("operators", op.name, "uses"), f"{exc}{hint}"))
             continue
-        nodes[op.name] = Node(op, cls, _params(doc, op, cls, problems))
+        nodes[op.name] = Node(op, cls, _params(doc, op, cls, problems), context)
     _check_ports(doc, nodes, spec.operators, problems)
     _check_cycles(doc, spec.operators, problems)
     _check_hosts(doc, spec, problems)

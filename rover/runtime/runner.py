@@ -8,6 +8,7 @@ host leaves only when every host is done, so nothing in flight is cut off.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import signal
@@ -15,8 +16,10 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from types import FrameType
+from typing import Any
 
 import zenoh
 
@@ -38,18 +41,21 @@ POLL_S = 0.05
 _KNOWN = typestore.fielddefs
 READY_LOG_S = 5.0
 
+_SignalHandler = Callable[[int, FrameType | None], Any] | int | None
+"""What signal.signal returns and takes back."""
+
 
 @dataclass
 class Stats:
     """What one operator received, sent and dropped, per port."""
 
-    received: Counter = field(default_factory=Counter)
-    sent: Counter = field(default_factory=Counter)
-    dropped: Counter = field(default_factory=Counter)
-    late: Counter = field(default_factory=Counter)
+    received: Counter[str] = field(default_factory=Counter)
+    sent: Counter[str] = field(default_factory=Counter)
+    dropped: Counter[str] = field(default_factory=Counter)
+    late: Counter[str] = field(default_factory=Counter)
 
     def line(self, name: str) -> str:
-        def fmt(c: Counter) -> str:
+        def fmt(c: Counter[str]) -> str:
             return ", ".join(f"{k}={v}" for k, v in sorted(c.items())) or "-"
 
         text = f"{name}: in {fmt(self.received)}; out {fmt(self.sent)}"
@@ -134,10 +140,8 @@ class Task:
             self.stop.set()
         finally:
             for out in self.outputs.values():
-                try:
+                with contextlib.suppress(zenoh.ZError):
                     out.end()
-                except zenoh.ZError:
-                    pass
             self.done.set()
 
     def run(self) -> None:
@@ -172,10 +176,11 @@ class Task:
 class SourceTask(Task):
     """Drives a source. Its items come in stamp order, so each stamp is also a promise on every port."""
 
+    op: Source
+
     def run(self) -> None:
-        source: Source = self.op  # type: ignore[assignment]
         clock = 0
-        for item in source.run(self.stop):
+        for item in self.op.run(self.stop):
             if self.abort.is_set():
                 break
             if isinstance(item, Watermark):
@@ -203,15 +208,15 @@ class OperatorTask(Task):
         abort: threading.Event,
     ):
         super().__init__(node, op, pipeline, session, stop, abort)
-        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self.inbox: queue.SimpleQueue[tuple[str, str, bytes, bytes | None]] = queue.SimpleQueue()
         self.merger = EventTimeMerger(list(node.spec.inputs))
-        self.ports = {port: node.cls.input_spec(port) for port in node.spec.inputs}
+        self.ports = {port: spec for port in node.spec.inputs if (spec := node.cls.input_spec(port)) is not None}
         self.subscribers = [
             session.declare_subscriber(keys.port_key(pipeline, wire.source, wire.source_port), self._enqueue_for(port))
             for port, wire in node.spec.inputs.items()
         ]
 
-    def _enqueue_for(self, port: str):
+    def _enqueue_for(self, port: str) -> Callable[[zenoh.Sample], None]:
         inbox = self.inbox
 
         def enqueue(sample: zenoh.Sample) -> None:
@@ -273,6 +278,13 @@ class OperatorTask(Task):
         self.publish(op.on_end(), int(max(o.last_ns for o in self.outputs.values())) if self.outputs else 0)
 
 
+def _report_drops(task: Task) -> None:
+    """One warning per reason the operator gave `Operator.drop`, like the per-input drops of the runtime.
+    A copy of the counts: a thread cut off at the end of the run may still be counting."""
+    for reason, n in sorted(dict(task.op.drops).items()):
+        log.warning("operator %r: dropped %d %s", task.name, n, reason)
+
+
 def _plausible_cdr(payload: bytes, typename: str, stamp: int) -> bool:
     """Cheap check for pass-through ports that never decode: a CDR encapsulation header and, for
     types with a header, a header stamp no later than the event time in the attachment (an output
@@ -300,19 +312,19 @@ class _ProgressBar:
                 TimeRemainingColumn(),
                 transient=True,
             )
-            self.ids = [self.progress.add_task("replay", total=s.progress()[1]) for s in self.sources]
+            self.ids = [self.progress.add_task("replay", total=(s.progress() or (0, 0))[1]) for s in self.sources]
 
     def update(self) -> None:
         if self.progress is not None:
-            for task_id, source in zip(self.ids, self.sources):
-                self.progress.update(task_id, completed=source.progress()[0])
+            for task_id, source in zip(self.ids, self.sources, strict=True):
+                self.progress.update(task_id, completed=(source.progress() or (0, 0))[0])
 
     def __enter__(self) -> _ProgressBar:
         if self.progress is not None:
             self.progress.start()
         return self
 
-    def __exit__(self, *_exc) -> None:
+    def __exit__(self, *_exc: object) -> None:
         if self.progress is not None:
             self.progress.stop()
 
@@ -333,7 +345,7 @@ class Runner:
         self._host_lock = threading.Condition()
 
     def session_spec(self) -> SessionSpec:
-        if not self.distributed:
+        if not self.distributed or self.host is None:
             return SessionSpec()
         h = self.pipeline.spec.hosts[self.host]
         return SessionSpec(h.listen, h.connect, h.connect_timeout_s, self.host)
@@ -365,10 +377,10 @@ class Runner:
                     log.error("operator %r failed to close: %s", name, exc)
         return 128 + self.interrupted if self.interrupted else 0
 
-    def _install_signals(self) -> dict:
+    def _install_signals(self) -> dict[signal.Signals, _SignalHandler]:
         if threading.current_thread() is not threading.main_thread():
             return {}
-        old = {}
+        old: dict[signal.Signals, _SignalHandler] = {}
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, lambda signum, _frame: self.request_stop(signum))
         return old
@@ -390,6 +402,7 @@ class Runner:
                     task.thread.join(timeout=1.0)
             for task in self.tasks:
                 log.log(logging.WARNING if task.stats.dropped else logging.INFO, "%s", task.stats.line(task.name))
+                _report_drops(task)
         failed = next((t for t in self.tasks if t.error is not None), None)
         if failed is not None:
             exc = failed.error
@@ -402,6 +415,7 @@ class Runner:
     def _run_with_hosts(self, session: zenoh.Session) -> None:
         """Start once every host has subscribed; leave once every host is done."""
         name = self.pipeline.name
+        assert self.host is not None, "a distributed run has a host"
         liveliness = session.liveliness()
         watcher = liveliness.declare_subscriber(keys.host_tokens(name), self._on_host_token, history=True)
         ready = liveliness.declare_token(keys.host_token(name, self.host, "ready"))

@@ -77,7 +77,7 @@ class EventTimeMerger:
                 queue = queues[port]
                 if queue and (best_stamp is None or queue[0][0] < best_stamp):
                     best_port, best_stamp = port, queue[0][0]
-            if best_port is None or not self._may_release(best_stamp, best_port):
+            if best_port is None or best_stamp is None or not self._may_release(best_stamp, best_port):
                 return
             stamp, item = queues[best_port].popleft()
             yield best_port, stamp, item
