@@ -89,7 +89,7 @@ def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
         }
     los = [t["error_m"] for t in tags.values() if not t["nlos"]]
     nl = [t["error_m"] for t in tags.values() if t["nlos"]]
-    diag = np.array([e.msg.solve_time_s for e in out if e.port == "diagnostics"]) * 1e3
+    diag = np.array([e.msg.wall_s for e in out if e.port == "timing"]) * 1e3
     return {
         "robot_mean_m": errors.unaligned["mean_m"],
         "robot_median_m": errors.unaligned["median_m"],
@@ -205,7 +205,7 @@ def main() -> int:
         _seed, items, *_ = per_seed[0]
         for window in args.windows:
             out, _cpu = run_slam(items, SlamParams(window=window), limit_epochs=window + 150)
-            times = np.array([e.msg.solve_time_s for e in out if e.port == "diagnostics"][window:]) * 1e3
+            times = np.array([e.msg.wall_s for e in out if e.port == "timing"][window:]) * 1e3
             figures["latency"][window] = {
                 "median_ms": float(np.median(times)),
                 "p99_ms": float(np.percentile(times, 99)),

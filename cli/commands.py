@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 from importlib import resources
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from rover import __version__
 from rover.cli.registry import BUILTINS
-from rover.errors import BadInput, RoverError, SpecError
+from rover.errors import BadInput, Interrupted, RoverError, SpecError
 from rover.pipeline.yamlpos import parse_scalar
 
 EXIT_BAD_INPUT = 2
@@ -30,13 +33,15 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise BadInput(f"--set {item!r}: expected NAME=VALUE")
-        values[key.strip()] = parse_scalar(value)
+        values[key.strip()] = parse_scalar(value, f"--set {key.strip()}")
     if getattr(args, "dataset", None) is not None:
         values["dataset"] = args.dataset
     if getattr(args, "output", None) is not None:
         values["output"] = args.output
     if getattr(args, "speed", None) is not None:
-        values["speed"] = parse_scalar(args.speed)
+        values["speed"] = parse_scalar(args.speed, "--speed")
+    if getattr(args, "timing_topic", None) is not None:
+        values["timing_topic"] = args.timing_topic
     return values
 
 
@@ -176,10 +181,20 @@ def cmd_eval(args: argparse.Namespace) -> int:
     import json
 
     from rover.evaluation.metrics import evaluate, render
-    from rover.formats.run_dir import load_run, load_truth, run_dataset
+    from rover.formats.run_dir import load_run, load_truth, read_run_description
 
+    description = read_run_description(args.run)
+    if description is not None and description.status == "failed":
+        raise BadInput(f"{args.run}: the run failed, nothing to evaluate: {description.reason}")
+    if description is not None and description.status in ("interrupted", "partial"):
+        logging.getLogger("rover.eval").warning(
+            "%s: the run is %s (%s): its results cover part of the dataset",
+            args.run,
+            description.status,
+            description.reason,
+        )
     run = load_run(args.run)
-    source = args.truth or run_dataset(args.run)
+    source = args.truth or (description.dataset if description is not None else None)
     if source is None:
         raise BadInput(f"{args.run}: the run names no dataset with ground truth: pass --truth DATASET_OR_TUM")
     truth = load_truth(source, args.tags)
@@ -189,6 +204,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         logging.getLogger("rover.eval").warning("no tag truth: pass --tags CSV for tag errors")
     metrics = evaluate(run, truth, args.t_max_diff)
     sys.stdout.write(json.dumps(metrics, indent=2) + "\n" if args.json else render(metrics))
+    if args.figures:
+        from rover.evaluation.figures import write_figures
+
+        written = write_figures(run, truth, Path(args.run))
+        print(f"wrote {', '.join(p.name for p in written)} in {args.run}", file=sys.stderr)
     return 0
 
 
@@ -223,6 +243,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", help="same as --set dataset=PATH")
     p.add_argument("--output", help="same as --set output=DIR")
     p.add_argument("--speed", help="same as --set speed=X: replay at X times real time (max: as fast as possible)")
+    p.add_argument(
+        "--timing-topic",
+        metavar="TOPIC",
+        help="same as --set timing_topic=TOPIC: also record the wall-clock timings in results.mcap "
+        "(they are always in timing.json; recorded, they make results.mcap differ between identical runs)",
+    )
     _add_set(p)
     p.set_defaults(func=cmd_run)
 
@@ -263,6 +289,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--tags", help="true tag positions (CSV: id,channel,x,y,z,nlos)")
     p.add_argument("--t-max-diff", type=float, default=0.01, help="largest stamp gap when pairing poses (s)")
     p.add_argument("--json", action="store_true", help="print metrics.json instead of the table")
+    p.add_argument("--figures", action="store_true", help="also draw the figures into the run's folder")
     p.set_defaults(func=cmd_eval)
 
     p = command("info", help="what a dataset holds, like `ros2 bag info`")
@@ -276,8 +303,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="rover: %(levelname)s: %(message)s")
+    previous = (
+        {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+        if threading.current_thread() is threading.main_thread()
+        else {}
+    )
     try:
         return args.func(args)
+    except Interrupted as exc:
+        return 128 + exc.signum
     except SpecError as exc:
         for d in exc.diagnostics:
             print(d, file=sys.stderr)
@@ -289,7 +323,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rover: error: {exc}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:
-        return 130
+        return 128 + signal.SIGINT
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _interrupt(signum: int, _frame: FrameType | None) -> None:
+    """SIGINT and SIGTERM stop a command where it is; its outputs clean up on the way out
+    (`rover run` has its own handlers, which let the operators drain and finish)."""
+    raise Interrupted(signum)
 
 
 if __name__ == "__main__":

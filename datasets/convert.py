@@ -14,10 +14,10 @@ import math
 import struct
 import sys
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import yaml
@@ -25,12 +25,13 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 
 import rover
 from rover.errors import BadInput, SpecError
-from rover.formats.bag import BagWriter, iter_messages
+from rover.formats.bag import BagReader, BagWriter, check_output
 from rover.formats.rig import Rig, load_rig
 from rover.formats.truth import read_tags_csv, read_tum
-from rover.messages import Raw, cdr_stamp_ns, deserialize, header, make, serialize
+from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
 
 log = logging.getLogger("rover.convert")
+T = TypeVar("T")
 
 ROLES = {"csi": "rover_msgs/msg/CsiFrame", "imu": "sensor_msgs/msg/Imu", "odom": "nav_msgs/msg/Odometry"}
 OUTPUT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
@@ -128,6 +129,21 @@ def _choose_topics(reader: AnyReader, rig: Rig, overrides: dict[str, str]) -> di
             "dataset say so in the setup: topics: {csi: null}"
         )
     return chosen
+
+
+def _read_guarded(records: Iterator[T], bags: list[Path]) -> Iterator[T]:
+    """The records of a bag reader; whatever the reader raises on a truncated or corrupt file
+    (rosbags' ReaderError, a zstd or lz4 error, struct.error, ...) is BadInput naming the bags.
+    Only the reader's own `next()` is guarded: errors of the code consuming the records are not."""
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            return
+        except Exception as exc:  # noqa: BLE001 - any failure of the library on untrusted bytes
+            names = ", ".join(map(str, bags))
+            raise BadInput(f"{names}: cannot read as a ROS bag: {type(exc).__name__}: {exc}") from None
+        yield record
 
 
 def _stamp(msg: Any, fallback_ns: int) -> int:
@@ -277,6 +293,17 @@ def _dataset_setup(rig: Rig) -> str:
     return yaml.safe_dump(data, sort_keys=False)
 
 
+def _check_not_an_input(output: Path, inputs: Sequence[Path]) -> None:
+    """Reject an output that is one of the inputs or inside a bag folder read: --force would destroy it."""
+    target = output.resolve()
+    for source in inputs:
+        resolved = source.resolve()
+        if target == resolved or (output.exists() and source.exists() and output.samefile(source)):
+            raise BadInput(f"{output}: is also an input ({source}); converting onto it would destroy it")
+        if source.is_dir() and resolved in target.parents:
+            raise BadInput(f"{output}: is inside the bag folder {source} being converted; write it elsewhere")
+
+
 def convert(
     paths: Sequence[str | Path],
     output: str | Path,
@@ -291,7 +318,8 @@ def convert(
     command_line: str = "",
     progress: Callable[[int, int], None] | None = None,
 ) -> Report:
-    """Convert bags to a dataset; the output appears only when complete."""
+    """Convert bags to a dataset. The output is checked before any work (not a directory, not one
+    of the inputs) and appears only when complete."""
     output = Path(output)
     sources = resolve_sources(paths)
     setup_path = Path(setup) if setup else sources.setup
@@ -303,26 +331,28 @@ def convert(
         raise BadInput("; ".join(str(d) for d in exc.diagnostics)) from None
     truth = truth or sources.truth
     tags = tags or sources.tags
-    if output.exists() and not force:
-        raise BadInput(f"{output}: exists (use --force to replace it)")
+    inputs = [*sources.bags, setup_path, *[Path(x) for x in (truth, tags) if x]]
+    _check_not_an_input(output, inputs)
+    check_output(output, force=force)
     report = Report(output)
     provenance = {
         "tool": f"rover {rover.__version__}",
         "command": command_line,
-        "sources": yaml.safe_dump(
-            [
-                {"path": str(p), "sha256": _sha256(p)}
-                for p in [*sources.bags, setup_path, *[Path(x) for x in (truth, tags) if x]]
-            ]
-        ),
+        "sources": yaml.safe_dump([{"path": str(p), "sha256": _sha256(p)} for p in inputs]),
     }
     try:
         reader = AnyReader(sources.bags)
         reader.open()
-    except (AnyReaderError, OSError, ValueError) as exc:
+    except AnyReaderError as exc:
         raise BadInput(f"{', '.join(map(str, sources.bags))}: cannot read as a ROS bag: {exc}") from None
+    except Exception as exc:  # noqa: BLE001 - any failure of the library on untrusted bytes, as in _read_guarded
+        names = ", ".join(map(str, sources.bags))
+        raise BadInput(f"{names}: cannot read as a ROS bag: {type(exc).__name__}: {exc}") from None
     try:
-        chosen = _choose_topics(reader, rig, topics or {})
+        try:
+            chosen = _choose_topics(reader, rig, topics or {})
+        except BadInput as exc:
+            raise BadInput(f"{', '.join(map(str, sources.bags))}: {exc}") from None
         report.topics = {role: topic for role, topic in chosen.items() if topic is not None}
         for line in (f"{role}: {topic}" for role, topic in report.topics.items()):
             log.info("topic %s", line)
@@ -336,7 +366,8 @@ def convert(
         rows: list[tuple[int, int, str, Any]] = []
         last: dict[str, int] = {}
         same_layout: dict[int, bool] = {}
-        for n, (conn, _log_ns, raw) in enumerate(reader.messages(connections=connections)):
+        messages = _read_guarded(reader.messages(connections=connections), sources.bags)
+        for n, (conn, _log_ns, raw) in enumerate(messages):
             if progress is not None and n % 2000 == 0:
                 progress(n, total)
             role = role_of[conn.topic]
@@ -411,10 +442,8 @@ def _truth_from_dataset(path: Path, with_tags: bool):
     topics = {TRUTH_POSE: "geometry_msgs/msg/PoseStamped"}
     if with_tags:
         topics[TRUTH_TAGS] = "rover_msgs/msg/TagArray"
-    found = [
-        (m.log_time_ns, deserialize(m.data, topics[m.topic]))
-        for m in iter_messages(path, topics, failure="not a readable dataset")
-    ]
+    with BagReader(path, "not a readable dataset") as bag:
+        found = [(m.log_time_ns, bag.decode(m, topics[m.topic])) for m in bag.messages(topics)]
     if not found:
         raise BadInput(f"{path}: has no {TRUTH_POSE} to use as ground truth")
     yield from found

@@ -2,19 +2,36 @@
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from rover.errors import BadInput
-from rover.formats.bag import BagReader
-from rover.messages import deserialize
+from rover.errors import BadInput, SpecError
+from rover.formats.bag import BagReader, shown
+from rover.pipeline.yamlpos import safe_load_limited
 
 SETUP_METADATA = "rover.setup"
 PROVENANCE_METADATA = "rover.provenance"
+CSI_TYPE = "rover_msgs/msg/CsiFrame"
+
+log = logging.getLogger("rover.info")
+
+
+def _metadata_yaml(path: str, record: str, text: str) -> dict[str, Any]:
+    """The mapping a metadata record's YAML holds, loaded within the YAML limits (the file is untrusted)."""
+    try:
+        data = safe_load_limited(text, record)
+    except SpecError as exc:
+        d = exc.diagnostics[0]
+        where = f", line {d.line}" if d.line else ""
+        raise BadInput(f"{path}: metadata record {record!r}{where}: {d.message}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise BadInput(f"{path}: metadata record {record!r}: expected a YAML mapping, got {type(data).__name__}")
+    return data
 
 
 @dataclass
@@ -43,7 +60,7 @@ class DatasetInfo:
         del out["metadata"]
         simulation = self.metadata.get("rover.simulation", {}).get("yaml")
         if simulation:
-            sim = yaml.safe_load(simulation) or {}
+            sim = _metadata_yaml(self.path, "rover.simulation", simulation)
             out["simulation"] = {k: sim.get(k) for k in ("scenario", "seed", "path_length_m", "nlos")}
             out["simulation"]["direct_to_multipath_db"] = {
                 str(k): v for k, v in (sim.get("direct_to_multipath_db") or {}).items()
@@ -52,7 +69,8 @@ class DatasetInfo:
 
 
 def dataset_info(path: str | Path, csi_topic: str = "/csi") -> DatasetInfo:
-    """Summarize a dataset; BadInput when it is not a readable MCAP file."""
+    """Summarize a dataset; BadInput when it is not a readable MCAP file. A `csi_topic` of another
+    type than CsiFrame is listed with a warning and no packets per channel."""
     path = Path(path)
     if path.is_dir():
         files = sorted(path.glob("*.mcap"))
@@ -71,9 +89,19 @@ def dataset_info(path: str | Path, csi_topic: str = "/csi") -> DatasetInfo:
         stats = summary.statistics
         metadata = bag.metadata()
         per_channel: Counter[int] = Counter()
-        if any(c.topic == csi_topic for c in summary.channels):
+        csi_types = {c.schema for c in summary.channels if c.topic == csi_topic}
+        if CSI_TYPE in csi_types:
             for message in bag.messages([csi_topic], log_time_order=False):
-                per_channel[int(deserialize(message.data, "rover_msgs/msg/CsiFrame").channel)] += 1
+                if message.schema == CSI_TYPE:
+                    per_channel[int(bag.decode(message, CSI_TYPE).channel)] += 1
+        elif csi_types:
+            log.warning(
+                "%s: topic %s carries %s, not %s: no CSI packets per channel",
+                path,
+                csi_topic,
+                ", ".join(sorted(shown(t) if t else "no schema" for t in csi_types)),
+                CSI_TYPE,
+            )
     duration_s = (stats.end_ns - stats.start_ns) / 1e9 if stats.message_count else 0.0
     topics = []
     for channel in sorted(summary.channels, key=lambda c: c.topic):
@@ -113,7 +141,7 @@ def render(info: DatasetInfo) -> str:
             lines.append(f"  channel {ch:>3}: {n:>8}{owner}")
     simulation = info.metadata.get("rover.simulation", {}).get("yaml")
     if simulation:
-        sim = yaml.safe_load(simulation) or {}
+        sim = _metadata_yaml(info.path, "rover.simulation", simulation)
         lines.append(
             f"Simulated: scenario {sim.get('scenario')}, seed {sim.get('seed')}, path {sim.get('path_length_m')} m"
         )

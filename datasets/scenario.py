@@ -12,7 +12,7 @@ from typing import Any
 from rover.errors import BadInput, Diagnostic, SpecError
 from rover.pipeline import params as P
 from rover.pipeline.params import Fraction, NonNegativeFloat, PositiveFloat, PositiveInt
-from rover.pipeline.spec import did_you_mean
+from rover.pipeline.spec import did_you_mean, read_yaml_text
 from rover.pipeline.yamlpos import Located, load, parse_scalar
 
 
@@ -156,10 +156,7 @@ def load_scenario(name_or_path: str, overrides: dict[str, str] | None = None) ->
     """A built-in scenario by name, or a scenario file; raise SpecError/BadInput on problems."""
     path = Path(name_or_path)
     if path.suffix in (".yaml", ".yml") or path.exists():
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
+        text = read_yaml_text(path)
         file = str(path)
     else:
         names = builtin_scenarios()
@@ -174,7 +171,7 @@ def load_scenario(name_or_path: str, overrides: dict[str, str] | None = None) ->
     if not isinstance(doc.data, dict):
         raise SpecError([doc.diag((), "a scenario is a mapping of sections")])
     for key, value in (overrides or {}).items():
-        _override(doc.data, key, parse_scalar(value))
+        _override(doc.data, key, parse_scalar(value, f"--set {key}"))
     problems: list[Diagnostic] = []
     for key in doc.data:
         if key not in (*SECTIONS, "tags"):

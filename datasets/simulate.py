@@ -19,7 +19,7 @@ from rover.datasets.motion import Motion
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import Scenario
 from rover.errors import BadInput
-from rover.formats.bag import BagWriter
+from rover.formats.bag import BagWriter, check_output
 from rover.formats.intel5300 import RecordHeader, encode_record
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
 from rover.geometry import quaternion_from_yaw, wrap_angle
@@ -105,9 +105,9 @@ class _World:
 def simulate(
     scenario: Scenario, seed: int, output: str | Path, command_line: str = "", force: bool = False
 ) -> SimReport:
-    output = Path(output)
-    if output.exists() and not force:
-        raise BadInput(f"{output}: exists (use --force to replace it)")
+    """Simulate `scenario` with `seed` into the dataset `output`, which is checked before any
+    work and appears only when complete."""
+    output = check_output(output, force=force)
     rng = np.random.default_rng(seed)
     rx = scenario.receiver
     motion = Motion(scenario.trajectory)

@@ -18,7 +18,7 @@ import numpy as np
 from rover.errors import BadInput
 from rover.formats.intel5300 import StreamDecoder
 from rover.messages import header, make
-from rover.operator import Emit, Out, Source, Watermark
+from rover.operator import COMPLETE, Emit, Out, RunOutcome, Source, Watermark
 from rover.pipeline.params import Checked, NonNegativeInt, PositiveFloat
 
 CHUNK_BYTES = 1 << 16
@@ -91,5 +91,5 @@ class CsiFile(Source):
             ),
         )
 
-    def close(self, complete: bool = True) -> None:
+    def close(self, outcome: RunOutcome = COMPLETE) -> None:
         self._file.close()

@@ -21,7 +21,7 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.messages import header, make
-from rover.operator import Emit, Out, Source, Watermark
+from rover.operator import COMPLETE, Emit, Out, RunOutcome, Source, Watermark
 from rover.pipeline.params import Checked, NonNegativeInt
 
 log = logging.getLogger("rover.csi_netlink")
@@ -134,7 +134,7 @@ class CsiNetlink(Source):
                 ),
             )
 
-    def close(self, complete: bool = True) -> None:
+    def close(self, outcome: RunOutcome = COMPLETE) -> None:
         self.sock.close()
         if self._log is not None:
             self._log.close()

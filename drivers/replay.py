@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Literal
 
 from rover.errors import BadInput, SpecError
-from rover.formats.bag import BagReader
+from rover.formats.bag import BagReader, shown
 from rover.formats.rig import load_rig
 from rover.messages import Raw, header, message_class
 from rover.operator import Emit, Out, Source, Watermark
@@ -87,7 +87,7 @@ class DatasetReplay(Source):
                 continue
             wanted = self.outputs[port].type
             if channel.schema != wanted or channel.encoding != "cdr":
-                got = f"{channel.schema or 'no schema'} ({channel.encoding})"
+                got = f"{shown(channel.schema) if channel.schema else 'no schema'} ({shown(channel.encoding)})"
                 raise BadInput(f"{self.path}: topic {channel.topic} is {got}, expected {wanted} (cdr)")
             found[channel.topic] = port
             total += channel.count
@@ -121,3 +121,6 @@ class DatasetReplay(Source):
                 port = self._channels[message.topic]
                 self._done += 1
                 yield Emit(port, Raw(self.outputs[port].type, message.data))
+        if not self._done:
+            wanted = ", ".join(self.params.topics.values())
+            log.warning("%s: no messages on %s: the run's outputs are empty", self.path, wanted)

@@ -3,9 +3,15 @@
 `trajectory.tum` holds each epoch's final estimate (when it left the SLAM window, or at the end),
 `trajectory_live.tum` the same epochs as estimated at their own time. `tags.csv` holds each tag's
 final estimate with its covariance and the times it was first heard, first localized and last
-heard, all on the header-stamp clock. Files appear only once complete (written aside, renamed).
-When `truth` names a dataset (or TUM file) with ground truth, `metrics.json` and the figures
-follow, computed as `rover eval` does.
+heard, all on the header-stamp clock. `timing.json` summarises the wall-clock timings (kept out
+of results.mcap, so the same input gives the same bytes there). When `dataset` has ground truth,
+`metrics.json` and the figures follow, computed as `rover eval` does; after an interrupt only when
+they fit in the time left (`rover eval OUT --figures` writes the figures later).
+
+Files appear only once complete (written aside, renamed). A run first removes what an earlier run
+left in the folder, and a failed run leaves only `run.json`, which says how every run ended:
+its `status` (complete, partial, interrupted, failed), the `reason`, and what each operator
+received, sent and dropped.
 """
 
 from __future__ import annotations
@@ -19,11 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from rover.evaluation.figures import write_figures
-from rover.evaluation.metrics import evaluate, poses_of_messages
+from rover.errors import OutputFailed
+from rover.evaluation.figures import FIGURE_FILES, write_figures
+from rover.evaluation.metrics import Truth, evaluate, poses_of_messages
+from rover.formats.atomic_file import remove_outputs, write_aside
 from rover.formats.run_dir import RUN_FILE, load_truth, record
 from rover.messages import stamp_ns
-from rover.operator import In, Operator
+from rover.operator import COMPLETE, In, Operator, RunOutcome
 
 log = logging.getLogger("rover.outputs")
 
@@ -54,10 +62,20 @@ def tum_line(msg: Any) -> str:
     return f"{seconds(stamp_ns(msg))} {p.x:.6f} {p.y:.6f} {p.z:.6f} {q.x:.9f} {q.y:.9f} {q.z:.9f} {q.w:.9f}\n"
 
 
+TIMING_FILE = "timing.json"
+METRICS_FILE = "metrics.json"
+ESTIMATE_FILES = ("trajectory.tum", "trajectory_live.tum", "tags.csv")
+RUN_FILES = (*ESTIMATE_FILES, TIMING_FILE, METRICS_FILE, *FIGURE_FILES, RUN_FILE)
+"""Everything this operator may write: what a new run removes first."""
+METRICS_MIN_S = 0.3
+"""After an interrupt, metrics are computed only with this much of the time budget left."""
+FIGURES_MIN_S = 1.5
+"""After an interrupt, figures are drawn only with this much left (matplotlib's start-up alone takes about 1 s)."""
+
+
 def write_atomic(path: Path, text: str) -> None:
-    partial = path.with_name(f".{path.name}.partial")
-    partial.write_text(text, encoding="utf-8")
-    partial.replace(path)
+    """Write `text` to `path`, whole or not at all."""
+    write_aside(path, lambda partial: partial.write_text(text, encoding="utf-8"))
 
 
 @dataclass
@@ -84,6 +102,7 @@ class RunOutputs(Operator):
         "pose": In("geometry_msgs/msg/PoseStamped", doc="live poses (slam/pose)"),
         "tags": In("rover_msgs/msg/TagArray"),
         "aoa": In("rover_msgs/msg/Aoa", required=False, doc="for when each tag was heard"),
+        "timing": In("rover_msgs/msg/Timing", required=False, doc="wall-clock timings, summarised in timing.json"),
     }
     Params = RunOutputsParams
 
@@ -94,9 +113,25 @@ class RunOutputs(Operator):
         self.tags: dict[int, _TagRecord] = {}
         self.history: list[tuple[int, int, float, float, bool]] = []
         self.aoa: list[tuple[int, int, float, float]] = []
+        self.timing: dict[str, list[float]] = {}
+        self.written: list[Path] = []
+        self.notes: list[str] = []
+        self.out = Path(self.params.out)
+        self.truth: Truth | None = None
+
+    def start(self) -> None:
+        """Remove an earlier run's files; read the dataset's ground truth now, so that after an
+        interrupt the metrics fit in the time budget."""
+        remove_outputs(self.out / name for name in RUN_FILES)
+        if self.params.dataset:
+            self.truth = load_truth(Path(self.params.dataset))
+            if self.truth is None:
+                log.info("outputs: %s has no ground truth: no metrics", self.params.dataset)
 
     def on_input(self, port: str, msg: Any, stamp: int):
-        if port == "trajectory":
+        if port == "timing":
+            self.timing.setdefault(msg.stage, []).append(msg.wall_s)
+        elif port == "trajectory":
             self.final.append(msg)
         elif port == "pose":
             self.live.append(msg)
@@ -143,30 +178,79 @@ class RunOutputs(Operator):
             )
         return "".join(lines)
 
-    def close(self, complete: bool = True) -> None:
-        if not complete:
+    def close(self, outcome: RunOutcome = COMPLETE) -> None:
+        """The estimates and timings; then metrics and figures, when there is truth and time."""
+        if not outcome.keeps_outputs:
             return
-        out = Path(self.params.out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_atomic(out / "trajectory.tum", "".join(tum_line(m) for m in sorted(self.final, key=stamp_ns)))
-        write_atomic(out / "trajectory_live.tum", "".join(tum_line(m) for m in sorted(self.live, key=stamp_ns)))
-        write_atomic(out / "tags.csv", self.tags_csv())
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputFailed(f"{self.out}: cannot create the output folder: {exc.strerror or exc}") from None
+        self._write("trajectory.tum", "".join(tum_line(m) for m in sorted(self.final, key=stamp_ns)))
+        self._write("trajectory_live.tum", "".join(tum_line(m) for m in sorted(self.live, key=stamp_ns)))
+        self._write("tags.csv", self.tags_csv())
+        self._write(TIMING_FILE, json.dumps(self.timing_summary(), indent=2) + "\n")
+        if self.truth is not None and self.final:
+            self._evaluate(self.truth, outcome)
+
+    def report(self, outcome: RunOutcome) -> None:
+        """run.json, whatever happened; a failed run's other files are removed."""
+        if not outcome.keeps_outputs:
+            for path in self.written:
+                path.unlink(missing_ok=True)
+            self.written = []
+        self.out.mkdir(parents=True, exist_ok=True)
         dataset = str(Path(self.params.dataset).resolve()) if self.params.dataset else ""
-        write_atomic(out / RUN_FILE, json.dumps(self.run_description(dataset), indent=2) + "\n")
-        if dataset and self.final:
-            self._evaluate(out, Path(dataset))
+        write_atomic(self.out / RUN_FILE, json.dumps(self.run_description(dataset, outcome), indent=2) + "\n")
 
-    def run_description(self, dataset: str) -> dict[str, Any]:
-        """run.json: the dataset read (so `rover eval` finds its truth), the pipeline and the command
-        line's settings."""
+    def _note(self, text: str) -> None:
+        """Something the user should know about this run's files: logged, and kept in run.json."""
+        log.warning("outputs: %s", text)
+        self.notes.append(text)
+
+    def _write(self, name: str, text: str) -> None:
+        write_atomic(self.out / name, text)
+        self.written.append(self.out / name)
+
+    def timing_summary(self) -> dict[str, dict[str, float]]:
+        """Per timed stage: how many, and the median, 90th percentile, largest and total wall-clock seconds."""
+        summary = {}
+        for stage, values in sorted(self.timing.items()):
+            v = np.array(values)
+            summary[stage] = {
+                "count": len(v),
+                "median_s": float(np.median(v)),
+                "p90_s": float(np.percentile(v, 90)),
+                "max_s": float(v.max()),
+                "total_s": float(v.sum()),
+            }
+        return summary
+
+    def run_description(self, dataset: str, outcome: RunOutcome = COMPLETE) -> dict[str, Any]:
+        """run.json: how the run ended and what it processed, the dataset read (so `rover eval` finds
+        its truth), the pipeline and the command line's settings."""
         pipeline = str(Path(self.context.pipeline_file).resolve()) if self.context.pipeline_file else ""
-        return {"dataset": dataset, "pipeline": pipeline, "command_line": dict(self.context.command_line)}
+        counts = {
+            name: {"received": dict(c.received), "sent": dict(c.sent), "dropped": dict(c.dropped)}
+            for name, c in sorted(outcome.counts.items())
+        }
+        return {
+            "status": outcome.status,
+            "reason": outcome.reason,
+            "dataset": dataset,
+            "pipeline": pipeline,
+            "command_line": dict(self.context.command_line),
+            "files": sorted(p.name for p in self.written),
+            "notes": self.notes,
+            "received": sum(sum(c["received"].values()) for c in counts.values()),
+            "dropped": sum(sum(c["dropped"].values()) for c in counts.values()),
+            "operators": counts,
+        }
 
-    def _evaluate(self, out: Path, dataset: Path) -> None:
-        """metrics.json and figures, when the dataset carries ground truth."""
-        truth = load_truth(dataset)
-        if truth is None:
-            log.info("outputs: %s has no ground truth: no metrics", dataset)
+    def _evaluate(self, truth: Truth, outcome: RunOutcome) -> None:
+        """metrics.json and figures, when the dataset carries ground truth and the time budget allows."""
+        if outcome.time_left_s() < METRICS_MIN_S:
+            self._note(f"metrics and figures skipped after the interrupt: run `rover eval {self.out} --figures`")
             return
         ids = np.array(sorted(self.tags), dtype=int)
         last = [self.tags[i].last for i in ids]
@@ -188,5 +272,8 @@ class RunOutputs(Operator):
             self.aoa,
         )
         metrics = evaluate(run, truth)
-        write_atomic(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
-        write_figures(run, truth, out)
+        self._write(METRICS_FILE, json.dumps(metrics, indent=2) + "\n")
+        if outcome.time_left_s() < FIGURES_MIN_S:
+            self._note(f"figures skipped after the interrupt: run `rover eval {self.out} --figures`")
+            return
+        self.written += write_figures(run, truth, self.out)

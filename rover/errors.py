@@ -48,5 +48,17 @@ class OperatorFailed(RoverError):
     """An operator's handler raised while processing a message."""
 
 
+class OutputFailed(RoverError):
+    """An output of a run could not be finished (a full disk, a folder that went away): the run failed."""
+
+
 class PeerLost(RoverError):
     """Another host of a distributed run left before the end of the stream."""
+
+
+class Interrupted(BaseException):
+    """A command stopped by SIGINT or SIGTERM; the CLI exits 128 + signum after cleaning up."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        super().__init__(f"interrupted by signal {signum}")

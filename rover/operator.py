@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, Literal, NamedTuple
 
 from rover.errors import OperatorDefinitionError
 from rover.messages import ANY, known_type
@@ -65,6 +66,45 @@ class RunContext:
     """what the command line changed: {"vars": {...}, "params": {"OPERATOR.PARAM": value}}"""
 
 
+RunStatus = Literal["complete", "partial", "interrupted", "failed"]
+"""How a run ended: to the end of its input; without a host that left; stopped by a signal; failed."""
+
+
+@dataclass(frozen=True)
+class OperatorCounts:
+    """What one operator received, sent and dropped, per port (drops per `port:reason`, or per the
+    reason the operator gave `Operator.drop`)."""
+
+    received: Mapping[str, int] = field(default_factory=dict)
+    sent: Mapping[str, int] = field(default_factory=dict)
+    dropped: Mapping[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """How the run ended, given to `Operator.close` and `Operator.report`."""
+
+    status: RunStatus = "complete"
+    reason: str = ""
+    counts: Mapping[str, OperatorCounts] = field(default_factory=dict)
+    """per operator of this process"""
+    deadline: float | None = None
+    """`time.monotonic()` by which closing must be done (after an interrupt); None: no limit"""
+
+    @property
+    def keeps_outputs(self) -> bool:
+        """Outputs are finished and kept unless the run failed (an interrupted run keeps what it has)."""
+        return self.status != "failed"
+
+    def time_left_s(self) -> float:
+        """Seconds left before the deadline (infinite without one)."""
+        return float("inf") if self.deadline is None else self.deadline - time.monotonic()
+
+
+COMPLETE = RunOutcome()
+"""The outcome of a run that reached the end of its input (the default of `Operator.close`)."""
+
+
 class Operator:
     """Base class of every operator.
 
@@ -112,9 +152,18 @@ class Operator:
         """All inputs reached end of stream: flush what is pending."""
         return ()
 
-    def close(self, complete: bool = True) -> None:
-        """Release resources; called once at the end of the run. `complete` is False when the run
-        failed: outputs are then discarded rather than left half-written. An interrupt is complete."""
+    def start(self) -> None:
+        """Called once before the first message, when every operator of the run was built: an
+        operator that writes files removes what a previous run left there that it would overwrite."""
+
+    def close(self, outcome: RunOutcome = COMPLETE) -> None:
+        """Release resources and finish outputs; called once at the end of the run. When the run
+        failed (`not outcome.keeps_outputs`) outputs are discarded rather than left half-written.
+        Raising here fails the run."""
+
+    def report(self, outcome: RunOutcome) -> None:
+        """Called once after every operator closed, with the run's final outcome (a failure to
+        close fails the run): write a description of the run, or remove outputs of a failed one."""
 
     @classmethod
     def input_spec(cls, port: str) -> In | None:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import resource
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +77,15 @@ def run_rover(
     return proc
 
 
-def popen_rover(*args: str, cwd: Path | None = None) -> subprocess.Popen:
+def popen_rover(*args: str, cwd: Path | None = None, max_file_bytes: int | None = None) -> subprocess.Popen:
+    """`rover ARGS` started in a subprocess; with `max_file_bytes`, writes past that size fail
+    (EFBIG, as on a full disk)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+
+    def limit() -> None:
+        if max_file_bytes is not None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (max_file_bytes, max_file_bytes))
+
     return subprocess.Popen(
         [sys.executable, "-m", "rover.cli", *args],
         cwd=cwd,
@@ -83,7 +93,20 @@ def popen_rover(*args: str, cwd: Path | None = None) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=limit,
     )
+
+
+def wait_for_file(path: Path, proc: subprocess.Popen, min_bytes: int = 0, timeout_s: float = 300.0) -> None:
+    """Poll until `path` exists with more than `min_bytes`; fail if the process ends first or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        with contextlib.suppress(FileNotFoundError):
+            if path.stat().st_size >= min_bytes:
+                return
+        assert proc.poll() is None, f"rover ended ({proc.returncode}) before writing {path}: {proc.communicate()[1]}"
+        assert time.monotonic() < deadline, f"no {path} of {min_bytes} bytes after {timeout_s} s"
+        time.sleep(0.002)
 
 
 def read_bag(path: Path) -> list[tuple[str, int, bytes]]:

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+import re
+import signal
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import T0_NS, read_bag, reference_data, run_rover
+from conftest import T0_NS, popen_rover, read_bag, reference_data, run_rover, wait_for_file
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -195,3 +197,66 @@ def test_custom_message_definitions_in_the_bag_are_honoured(tmp_path):
     frames = [deserialize(d, "rover_msgs/msg/CsiFrame") for t, _s, d in read_bag(out) if t == "/csi"]
     assert [f.bfee.tolist() for f in frames] == [[i] * 7 for i in range(20)]
     assert {f.channel for f in frames} == {149}
+
+
+def test_an_output_that_is_a_directory_is_one_line_before_any_work(tmp_path):
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, StoragePlugin.MCAP)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    out = tmp_path / "existing_dir"
+    out.mkdir()
+    proc = run_rover("convert", str(bag), "--setup", str(setup), "-o", str(out), "--force")
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [
+        f"rover: error: {out}: is a directory; name the file to write, e.g. {out / 'dataset.mcap'}"
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "existing_dir", "setup.yaml"]
+    assert list(out.iterdir()) == []
+
+
+def test_converting_onto_one_of_its_own_sources_is_rejected(tmp_path):
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, StoragePlugin.MCAP)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    dataset = tmp_path / "dataset.mcap"
+    convert([bag], dataset, setup=setup)
+    (inner,) = bag.glob("*.mcap")
+    before = {p: p.read_bytes() for p in (setup, dataset, inner)}
+    with pytest.raises(BadInput, match=re.escape(f"{setup}: is also an input ({setup})")):
+        convert([bag], setup, setup=setup, force=True)
+    with pytest.raises(BadInput, match=re.escape(f"{dataset}: is also an input ({dataset})")):
+        convert([dataset], dataset, setup=setup, force=True)
+    with pytest.raises(BadInput, match=re.escape(f"{inner}: is inside the bag folder {bag} being converted")):
+        convert([bag], inner, setup=setup, force=True)
+    assert {p: p.read_bytes() for p in before} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "dataset.mcap", "setup.yaml"]
+
+
+def test_force_keeps_the_old_file_when_a_full_disk_fails_the_new_one(tmp_path):
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, StoragePlugin.MCAP)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    out = tmp_path / "out.mcap"
+    convert([bag], out, setup=setup)
+    old = out.read_bytes()
+    source = reference_data() / "recording_sample"
+    proc = popen_rover("convert", str(source), "-o", str(out), "--force", max_file_bytes=1_000_000)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert stderr.splitlines() == [f"rover: error: {out}: cannot write: File too large"]
+    assert out.read_bytes() == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "out.mcap", "setup.yaml"]
+
+
+@pytest.mark.parametrize(("signum", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["TERM", "INT"])
+def test_a_signal_while_writing_leaves_no_partial(tmp_path, signum, status):
+    proc = popen_rover("convert", str(reference_data() / "recording_sample"), "-o", str(tmp_path / "x.mcap"))
+    wait_for_file(tmp_path / ".x.mcap.partial", proc)
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == status, stderr
+    assert "Traceback" not in stderr
+    assert list(tmp_path.iterdir()) == []

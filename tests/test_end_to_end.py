@@ -6,14 +6,18 @@ import csv
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
-from conftest import read_bag, reference_data, run_rover
+import pytest
+from conftest import popen_rover, read_bag, reference_data, run_rover, wait_for_file
 
-from rover.formats.bag import BagReader, BagWriter
+from rover.drivers.run_outputs import TAG_COLUMNS
+from rover.formats.bag import BagReader, BagWriter, read_metadata
 from rover.geometry import wrap_angle
 from rover.messages import deserialize
 
@@ -70,18 +74,120 @@ def test_ground_truth_never_reaches_the_estimate(tmp_path, simulated):
     for name, path in (("with", dataset), ("without", blind)):
         out = tmp_path / name
         # The default window, given on the command line: the same results, and run.json records it.
-        proc = run_rover("run", "--dataset", str(path), "--output", str(out), "--set", "slam.window=30", timeout=600)
+        timing = ["--timing-topic", "/rover/timing"] if name == "without" else []
+        proc = run_rover(
+            "run", "--dataset", str(path), "--output", str(out), "--set", "slam.window=30", *timing, timeout=600
+        )
         assert proc.returncode == 0, proc.stderr
+        recorded = {t for t, _s, _d in read_bag(out / "results.mcap")}
+        assert ("/rover/timing" in recorded) == bool(timing)
         run = json.loads((out / "run.json").read_text())
+        assert run["status"] == "complete" and run["reason"] == ""
         assert run["dataset"] == str(path.resolve()) and run["pipeline"].endswith("pipeline.yaml")
         assert run["command_line"] == {
-            "vars": {"dataset": str(path), "output": str(out)},
+            "vars": {"dataset": str(path), "output": str(out), **({"timing_topic": "/rover/timing"} if timing else {})},
             "params": {"slam.window": 30},
         }
     for name in ("trajectory.tum", "trajectory_live.tum", "tags.csv"):
         assert (tmp_path / "with" / name).read_bytes() == (tmp_path / "without" / name).read_bytes(), name
     assert (tmp_path / "with" / "metrics.json").exists()
     assert not (tmp_path / "without" / "metrics.json").exists()
+
+
+def test_an_empty_dataset_is_a_clean_run_with_empty_outputs(tmp_path, simulated):
+    """A dataset with the rig description and not one message: status 0, one warning, every
+    estimate file present and empty, run.json counting nothing."""
+    empty = tmp_path / "empty.mcap"
+    with BagWriter(empty, metadata={"rover.setup": read_metadata(simulated("paper", 1))["rover.setup"]}):
+        pass
+    out = tmp_path / "out"
+    proc = run_rover("run", "--dataset", str(empty), "--output", str(out), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert f"rover: WARNING: {empty}: no messages on /csi, /imu/data, /odom: the run's outputs are empty" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert (out / "trajectory.tum").read_text() == (out / "trajectory_live.tum").read_text() == ""
+    assert (out / "tags.csv").read_text().splitlines() == [",".join(TAG_COLUMNS)]
+    assert read_bag(out / "results.mcap") == []
+    run = json.loads((out / "run.json").read_text())
+    assert (run["status"], run["reason"], run["received"], run["dropped"]) == ("complete", "", 0, 0)
+
+
+FIRST_CHUNK_BYTES = 100_000
+"""The recorder's file passes this size once its first chunk is flushed (a fifth of the run here):
+by then epochs have left the SLAM window, so there are final poses and metrics to write."""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_run_finishes_its_estimates_within_2_s(tmp_path, simulated, sig):
+    """Stopped while the estimate is flowing, on a dataset with ground truth: the process is gone
+    within 2 s of the signal with the estimates and metrics written; the figures, which do not
+    fit in the budget, are skipped with a note and `rover eval --figures` draws them later."""
+    out = tmp_path / "out"
+    proc = popen_rover("run", "--dataset", str(simulated("paper", 1)), "--output", str(out))
+    wait_for_file(out / ".results.mcap.partial", proc, FIRST_CHUNK_BYTES)
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    _out, err = proc.communicate(timeout=30)
+    took = time.monotonic() - sent
+    assert proc.returncode == 128 + sig, err
+    assert took < 2.0, f"took {took:.2f} s to stop"
+    assert "Traceback" not in err
+    run = json.loads((out / "run.json").read_text())
+    assert (run["status"], run["reason"]) == ("interrupted", f"stopped by {signal.Signals(sig).name}")
+    files = {p.name for p in out.iterdir()}
+    assert {"trajectory.tum", "trajectory_live.tum", "tags.csv", "results.mcap", "metrics.json"} <= files
+    assert not [name for name in files if name.startswith(".")], files
+    assert len((out / "trajectory.tum").read_text().splitlines()) > 0
+    assert run["notes"] == [f"figures skipped after the interrupt: run `rover eval {out} --figures`"]
+    later = run_rover("eval", str(out), "--figures")
+    assert later.returncode == 0, later.stderr
+    assert {"trajectory.png", "robot_error.png", "tag_error.png", "aoa_cdf.png"} <= {p.name for p in out.iterdir()}
+
+
+def corrupt_middle_chunk(source: Path, target: Path) -> None:
+    """A copy of `source` with the compressed bytes of its middle chunk scrambled: the summary
+    still reads, so a run starts, and fails when the replay reaches that chunk."""
+    from mcap.reader import make_reader
+
+    data = bytearray(source.read_bytes())
+    with source.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    middle = chunks[len(chunks) // 2]
+    start = middle.chunk_start_offset + middle.chunk_length // 2
+    data[start : start + 64] = bytes(64)
+    target.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("truth", [True, False], ids=["truth read at the start", "replay in mid-run"])
+def test_a_run_failing_on_a_corrupt_chunk_replaces_the_earlier_runs_results(tmp_path, simulated, truth):
+    """Status 2 and one line naming the dataset, whether the corrupt chunk is met while reading
+    the ground truth before the run or by the replay in mid-run; the folder keeps no result of the
+    earlier run and its run.json says this run failed and why, so `rover eval` reads nothing stale."""
+    dataset = simulated("paper", 1)
+    if not truth:
+        strip_truth(dataset, tmp_path / "blind.mcap")
+        dataset = tmp_path / "blind.mcap"
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt_middle_chunk(dataset, corrupt)
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("trajectory.tum", "tags.csv", "metrics.json", "results.mcap"):
+        (out / name).write_text("from an earlier run")
+    (out / "run.json").write_text('{"status": "complete", "dataset": "/earlier/run.mcap"}')
+    proc = run_rover("run", "--dataset", str(corrupt), "--output", str(out), timeout=600)
+    assert proc.returncode == 2, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if "WARNING" not in line]
+    assert len(errors) == 1 and errors[0].startswith(f"rover: error: {corrupt}: "), proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["run.json"]
+    run = json.loads((out / "run.json").read_text())
+    assert run["status"] == "failed" and run["reason"] == errors[0].removeprefix("rover: error: ")
+    assert run["dataset"] == str(corrupt.resolve())
+    stale = run_rover("eval", str(out))
+    assert stale.returncode == 2
+    assert stale.stderr.splitlines() == [f"rover: error: {out}: the run failed, nothing to evaluate: {run['reason']}"]
 
 
 def test_sample_recording_convert_run_eval(tmp_path):

@@ -7,12 +7,14 @@ import math
 import re
 import subprocess
 import sys
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import run_rover
 
+from rover.cli.commands import main
 from rover.evaluation.metrics import Poses2D, fit_rigid, trajectory_errors
 
 T0 = 1_700_000_000.0
@@ -146,3 +148,118 @@ def test_rover_eval_bad_input(tmp_path):
     assert proc.returncode == 2 and "bad.tum:1:" in proc.stderr and "Traceback" not in proc.stderr
     proc = run_rover("eval", str(run))
     assert proc.returncode == 2 and "pass --truth" in proc.stderr
+
+
+def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    """Run the CLI in-process: status 2 and exactly one line on stderr, which is returned."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("rover: error: ") and "Traceback" not in err, err
+    return err.rstrip("\n")
+
+
+def eval_error(capsys: pytest.CaptureFixture[str], tmp_path: Path, name: str, content: str | bytes) -> tuple[Path, str]:
+    """`rover eval` of a good run whose file `name` is replaced by `content`; the one error line."""
+    run, reference, tags = make_run(tmp_path)
+    path = run / name
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content)
+    return path, one_error_line(capsys, ["eval", str(run), "--truth", str(reference), "--tags", str(tags)])
+
+
+def test_eval_of_a_binary_trajectory_is_one_line(tmp_path, capsys):
+    path, line = eval_error(capsys, tmp_path, "trajectory.tum", b"\x89PNG\r\n\x1a\n\x00\x00")
+    assert line == f"rover: error: {path}: not a text file (byte 0x89 at offset 0 is not UTF-8)"
+
+
+def test_eval_of_a_binary_tags_csv_is_one_line(tmp_path, capsys):
+    path, line = eval_error(capsys, tmp_path, "tags.csv", b"id,x\n\x00\x01\x02")
+    assert line == f"rover: error: {path}: not a text file (NUL byte at offset 5)"
+
+
+@pytest.mark.parametrize(
+    ("row", "problem"),
+    [
+        ("3,157,inf,1,0,0.01,0,0.01,1,1,2,3", "column x has a non-finite value 'inf'"),
+        ("3,157,1,1,0,nan,0,0.01,1,1,2,3", "column var_x has a non-finite value 'nan'"),
+        ("1,157,1,1,0,0.01,0,0.01,1,1,2,3", "tag id 1 repeated (first on line 2)"),
+        ("3,157,1,,0,0.01,0,0.01,1,1,2,3", "x and y are both numbers, or both empty for a tag never localized"),
+        ("3,157,1,1,0,,,,1,1,2,3", "a localized tag has var_x, cov_xy and var_y"),
+        ("3,157,1", "3 field(s), no value for column(s) y, var_x, cov_xy, var_y"),
+    ],
+)
+def test_eval_of_a_bad_tags_csv_row_is_one_line(tmp_path, capsys, row, problem):
+    header = "id,channel,x,y,z,var_x,cov_xy,var_y,observable,first_heard_s,first_localized_s,last_heard_s\n"
+    good = "1,149,2.1,3.0,0,0.01,0,0.01,1,1,2,3\n2,153,,,,1,0,1,0,1,,3\n"
+    path, line = eval_error(capsys, tmp_path, "tags.csv", header + good + row + "\n")
+    assert line == f"rover: error: {path}:4: {problem}"
+
+
+def test_eval_of_a_tags_csv_without_its_columns_is_one_line(tmp_path, capsys):
+    path, line = eval_error(capsys, tmp_path, "tags.csv", "id,channel,x,y\n1,149,2,3\n")
+    assert (
+        line == f"rover: error: {path}:1: missing column(s) var_x, cov_xy, var_y (expected id,x,y,var_x,cov_xy,var_y)"
+    )
+
+
+def test_eval_reads_stamps_in_exponent_notation(tmp_path, capsys):
+    run, reference, tags = make_run(tmp_path)
+    argv = ["eval", str(run), "--truth", str(reference), "--tags", str(tags), "--json"]
+    assert main(argv) == 0
+    plain = json.loads(capsys.readouterr().out)
+    for name in ("trajectory.tum", "trajectory_live.tum"):
+        lines = (run / name).read_text().splitlines()
+        (run / name).write_text(
+            "".join(f"{Decimal(t):e} {rest}\n" for t, rest in (line.split(" ", 1) for line in lines))
+        )
+    assert (run / "trajectory.tum").read_text().startswith("1.700000000000000000e+9 ")
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out) == plain
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        ("[]", "not a run description: a JSON object, got an array"),
+        ('{"dataset": 5}', "field dataset: a file path (a string), got a number"),
+        ('{"dataset": ', "not a run description: not JSON (Expecting value: line 1 column 13 (char 12))"),
+        (b"\x1f\x8b\x08\x00\xff", "not a text file (byte 0x8b at offset 1 is not UTF-8)"),
+    ],
+)
+def test_eval_of_a_bad_run_json_is_one_line(tmp_path, capsys, content, problem):
+    run, _reference, _tags = make_run(tmp_path)
+    path = run / "run.json"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content)
+    assert one_error_line(capsys, ["eval", str(run)]) == f"rover: error: {path}: {problem}"
+
+
+def test_eval_of_a_three_byte_results_mcap_is_one_line(tmp_path, capsys):
+    path, line = eval_error(capsys, tmp_path, "results.mcap", b"abc")
+    assert line == f"rover: error: {path}: cannot read: not an MCAP file (no MCAP magic bytes at its start)"
+
+
+def test_eval_against_a_three_byte_truth_is_one_line(tmp_path, capsys):
+    run, _reference, _tags = make_run(tmp_path)
+    truth = tmp_path / "truth.mcap"
+    truth.write_bytes(b"abc")
+    assert one_error_line(capsys, ["eval", str(run), "--truth", str(truth)]) == (
+        f"rover: error: {truth}: cannot read the dataset's ground truth: not an MCAP file "
+        "(no MCAP magic bytes at its start)"
+    )
+
+
+def test_eval_of_a_run_outside_the_truths_time_is_one_line(tmp_path, capsys):
+    run, _reference, tags = make_run(tmp_path)
+    t, xy, yaw = square_path(20)
+    later = write_tum(tmp_path / "later.tum", t + 1000.0, xy, yaw)
+    line = one_error_line(capsys, ["eval", str(run), "--truth", str(later), "--tags", str(tags)])
+    assert line == (
+        "rover: error: trajectory.tum and the ground truth do not overlap in time (within 0.01 s): "
+        "trajectory.tum spans 1700000000.000-1700000023.940 s, 400 poses; "
+        "the ground truth 1700001000.000-1700001022.800 s, 20 poses"
+    )

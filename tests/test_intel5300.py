@@ -300,11 +300,9 @@ def test_a_record_cut_short_inside_a_file_loses_no_other(tmp_path, small):
         path = tmp_path / f"short{keep}.dat"
         path.write_bytes(b"".join(recs[:3]) + recs[3][:keep] + b"".join(recs[4:]))
         out = read_dat(path)
-        if keep <= len(recs[3]) - 23:  # a whole header of the next record inside: the cut one is refused
-            assert out.bfee_count.tolist() == whole[:3] + whole[4:], keep
-            assert out.n_corrupt == (1 if keep >= 23 else 0), keep
-        else:  # cut by less than a header: it cannot be told, both are kept
-            assert out.bfee_count.tolist() == whole, keep
+        # the next record's header lies inside the cut one or overlaps its claimed end: it is refused
+        assert out.bfee_count.tolist() == whole[:3] + whole[4:], keep
+        assert out.n_corrupt == (1 if keep >= 23 else 0), keep
         assert_same(streamed(path.read_bytes(), [len(b"".join(recs[:3])) + keep // 2]), out)
 
 
@@ -357,6 +355,59 @@ def test_garbage_between_records_is_skipped(tmp_path, small):
     assert_same(streamed(data, rng.integers(0, len(data), 40).tolist()), out)
 
 
+def cut_end(recs: list[bytes], i: int, k: int) -> bytes:
+    """The log of `recs` with the last k bytes of record i lost (its length prefix unchanged)."""
+    return b"".join(recs[:i]) + recs[i][:-k] + b"".join(recs[i + 1 :])
+
+
+@pytest.mark.parametrize("i", [0, 1, 270, 538, 539])
+@pytest.mark.parametrize("k", [1, 5, 22, 23, 40])
+def test_a_record_cut_short_is_corrupt_and_alters_no_other(sample, i, k):
+    """Issue 13 item 8: a record cut short by fewer bytes than a header (k < 23) was decoded with
+    the next record's first k bytes as its tail, plausible but wrong, and counted valid."""
+    intact, recs = decode_log(sample, scaled=False), records_of(sample)
+    data = cut_end(recs, i, k)
+    out = decode_log(data, scaled=False)
+    assert len(out) == 539 and (out.n_skipped, out.n_corrupt, out.n_garbage_bytes) == (0, 1, 0)
+    kept = np.array([j for j in range(540) if j != i])
+    for name in FIELDS[:-1]:
+        np.testing.assert_array_equal(getattr(out, name), getattr(intact, name)[kept], err_msg=name)
+    np.testing.assert_array_equal(out.offset, intact.offset[kept] - np.where(kept > i, k, 0))
+    end = int(intact.offset[i]) + len(recs[i]) - k
+    assert_same(streamed(data, [end - 1, end + 10]), decode_log(data))
+
+
+@pytest.mark.parametrize("k", [1, 22, 23, 40])
+def test_a_cut_short_record_next_to_a_0xc1_record_is_told_too(k):
+    """LGTM's real logs interleave 0xC1 records with the beamforming ones: a short record before
+    one is told by the 0xC1 record ending where the next beamforming record starts."""
+    log = min((reference_data() / "csi" / "lgtm").glob("*.dat"))
+    data = log.read_bytes()
+    recs, intact = records_of(data), decode_log(data, scaled=False)
+    codes = [r[2] for r in recs]
+    bfee, frame = codes.index(0xBB, 100), codes.index(0xC1, 100)
+    assert (len(intact), codes.count(0xC1)) == (1025, 1025)
+    out = decode_log(cut_end(recs, bfee, k), scaled=False)
+    assert (len(out), out.n_skipped, out.n_corrupt, out.n_garbage_bytes) == (1024, 1025, 1, 0)
+    assert out.bfee_count.tolist() == np.delete(intact.bfee_count, codes[:bfee].count(0xBB)).tolist()
+    np.testing.assert_array_equal(out.csi, np.delete(intact.csi, codes[:bfee].count(0xBB), axis=0))
+    out = decode_log(cut_end(recs, frame, k), scaled=False)
+    assert (len(out), out.n_skipped, out.n_corrupt, out.n_garbage_bytes) == (1025, 1024, 0, len(recs[frame]) - k)
+    np.testing.assert_array_equal(out.csi, intact.csi)
+
+
+def test_what_framing_cannot_tell_is_decoded_as_it_is(sample):
+    """The documented limit: a record cut short and followed by bytes that start no provable record
+    keeps those bytes as its tail. It counts as valid; only its last subcarriers are wrong."""
+    recs, intact = records_of(sample), decode_log(sample, scaled=False)
+    k, junk = 22, b"\xff" * 30
+    out = decode_log(b"".join(recs[:100]) + recs[100][:-k] + junk + b"".join(recs[101:]), scaled=False)
+    assert len(out) == 540 and (out.n_skipped, out.n_corrupt, out.n_garbage_bytes) == (0, 0, len(junk) - k)
+    wrong = int((out.csi[100] != intact.csi[100]).any(axis=(1, 2)).sum())
+    assert wrong in (1, 2) and (out.csi[100, : 30 - wrong] == intact.csi[100, : 30 - wrong]).all()
+    np.testing.assert_array_equal(np.delete(out.csi, 100, axis=0), np.delete(intact.csi, 100, axis=0))
+
+
 # ---------------------------------------------------------------------------------------------
 # Generated damage
 
@@ -389,6 +440,35 @@ def test_valid_records_after_damage_are_never_lost(small, data):
     assert all(b in found for b in decode_log(small).bfee_count.tolist()), "a valid record after damage was lost"
     cuts = data.draw(st.lists(st.integers(0, len(damaged)), max_size=3))
     assert_same(streamed(damaged, cuts), out)
+
+
+def rows(records: CsiRecords) -> list[tuple[int, int, bytes]]:
+    """Each decoded record as (timestamp_low, bfee_count, raw CSI bytes of its own shape)."""
+    n, t = records.nrx, records.ntx
+    return [
+        (int(records.timestamp_low[j]), int(records.bfee_count[j]), records.csi[j, :, : n[j], : t[j]].tobytes())
+        for j in range(len(records))
+    ]
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_a_cut_record_never_adds_or_alters_a_record(small, sample, data):
+    """Bytes lost from one record of a real log (its end, its middle, its head): no record is made
+    up or altered, and no other record is lost, whole or streamed."""
+    log = data.draw(st.sampled_from([small, sample]), label="log")
+    recs = records_of(log)
+    i = data.draw(st.integers(0, len(recs) - 1), label="record")
+    size = len(recs[i])
+    b = data.draw(st.one_of(st.just(size), st.integers(1, size)), label="cut to")
+    a = data.draw(st.integers(max(0, b - 60), b - 1) | st.integers(0, b - 1), label="cut from")
+    damaged = b"".join(recs[:i]) + recs[i][:a] + recs[i][b:] + b"".join(recs[i + 1 :])
+    out = decode_log(damaged, scaled=False)
+    original = iter(rows(decode_log(log, scaled=False)))
+    assert len(out) <= len(recs) and all(row in original for row in rows(out)), "a record was made up or altered"
+    assert len(out) >= len(recs) - 1, "another record was lost"
+    cuts = data.draw(st.lists(st.integers(0, len(damaged)), max_size=3), label="stream cuts")
+    assert_same(streamed(damaged, cuts, scaled=False), out)
 
 
 # ---------------------------------------------------------------------------------------------

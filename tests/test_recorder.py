@@ -9,6 +9,7 @@ from rosbags.highlevel import AnyReader
 
 from rover.drivers.recorder import Recorder, RecorderParams
 from rover.messages import Raw, header, make, serialize
+from rover.operator import RunOutcome
 
 
 def imu(i: int) -> Raw:
@@ -36,5 +37,30 @@ def test_writes_a_ros2_bag_other_tools_read(tmp_path):
 def test_a_failed_run_leaves_nothing(tmp_path):
     rec = Recorder(RecorderParams(out=str(tmp_path)))
     rec.on_input("imu", imu(0), T0_NS)
-    rec.close(complete=False)
+    rec.close(RunOutcome("failed", "boom"))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_run_replaces_the_earlier_file_and_an_empty_run_writes_an_empty_bag(tmp_path):
+    (tmp_path / "results.mcap").write_bytes(b"an earlier run's file")
+    rec = Recorder(RecorderParams(out=str(tmp_path)))
+    rec.start()
+    assert list(tmp_path.iterdir()) == []
+    rec.close()
+    assert read_bag(tmp_path / "results.mcap") == []
+
+
+def test_a_port_mapped_to_no_topic_is_not_recorded(tmp_path):
+    rec = Recorder(RecorderParams(out=str(tmp_path), topics={"timing": ""}))
+    rec.on_input("timing", imu(0), T0_NS)
+    rec.on_input("imu", imu(1), T0_NS + 1)
+    rec.close()
+    assert [t for t, _s, _ in read_bag(tmp_path / "results.mcap")] == ["/imu"]
+
+
+def test_a_run_that_fails_after_the_file_was_finished_removes_it(tmp_path):
+    rec = Recorder(RecorderParams(out=str(tmp_path)))
+    rec.on_input("imu", imu(0), T0_NS)
+    rec.close()
+    rec.report(RunOutcome("failed", "another output failed"))
     assert list(tmp_path.iterdir()) == []

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from conftest import T0_NS, read_bag, write_imu_dataset
+from mcap.reader import make_reader
 
+from rover.cli.commands import main
 from rover.drivers.replay import DatasetReplay, ReplayParams
 from rover.errors import BadInput
 from rover.formats.bag import BagWriter
@@ -79,3 +82,48 @@ def test_speed_from_the_command_line(tmp_path):
     proc = run_rover("run", "--dataset", str(path), "--speed", "20", "--output", str(tmp_path / "o"), cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert run_rover("run", "--dataset", str(path), "--speed", "fast", cwd=tmp_path).returncode == 2
+
+
+def corrupt_last_chunk(path: Path) -> Path:
+    """Flip bytes in the middle of the file's last chunk; the chunks before it stay intact."""
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+        assert summary is not None
+        chunks = summary.chunk_indexes
+    assert len(chunks) >= 2
+    data = bytearray(path.read_bytes())
+    middle = chunks[-1].chunk_start_offset + chunks[-1].chunk_length // 2
+    data[middle : middle + 16] = bytes(b ^ 0xFF for b in data[middle : middle + 16])
+    path.write_bytes(data)
+    return path
+
+
+def test_run_of_a_six_byte_text_file_is_one_line(tmp_path, capsys):
+    path = tmp_path / "six.mcap"
+    path.write_text("hello\n")
+    assert main(["run", "--dataset", str(path), "--output", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err
+        == f"rover: error: {path}: not a readable MCAP dataset: not an MCAP file (no MCAP magic bytes at its start)\n"
+    )
+
+
+def test_a_corrupt_chunk_met_while_replaying_is_bad_input(tmp_path):
+    path = corrupt_last_chunk(write_imu_dataset(tmp_path / "d.mcap", 6000, odom_every=0))
+    replay = DatasetReplay(ReplayParams(path=str(path)))
+    items = []
+    with pytest.raises(BadInput, match=r"d\.mcap: not a readable MCAP dataset: corrupt "):
+        for item in replay.run(threading.Event()):
+            items.append(item)
+    assert len(items) > 1000, "the intact chunks before the corrupt one are replayed"
+
+
+def test_a_corrupt_chunk_ends_rover_run_with_status_2_and_one_line(tmp_path):
+    from conftest import run_rover
+
+    path = corrupt_last_chunk(write_imu_dataset(tmp_path / "d.mcap", 6000, odom_every=0))
+    proc = run_rover("-q", "run", "--dataset", str(path), "--output", str(tmp_path / "out"), cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.startswith(f"rover: error: {path}: not a readable MCAP dataset: corrupt "), proc.stderr

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 import math
+import signal
+import time
 
 import numpy as np
 import pytest
-from conftest import read_bag, run_rover
+from conftest import popen_rover, read_bag, run_rover, wait_for_file
 
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import load_scenario
@@ -147,3 +149,39 @@ def test_scenario_mistakes_are_reported():
         load_scenario("paper", {"trajectory.sped_m_s": "1"})
     with pytest.raises(SpecError, match="receiver.range_m: expected float"):
         load_scenario("paper", {"receiver.range_m": "far"})
+
+
+QUICK = ("--set", "trajectory.laps=1", "--set", "trajectory.speed_m_s=1.0")
+"""A 41 s run instead of 180 s: quicker to simulate, and still a moment to write (for the signal tests)."""
+
+
+def test_an_output_that_is_a_directory_is_one_line_before_any_work(tmp_path):
+    started = time.monotonic()
+    proc = run_rover("simulate", "-o", str(tmp_path), "--force")
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [
+        f"rover: error: {tmp_path}: is a directory; name the file to write, e.g. {tmp_path / 'dataset.mcap'}"
+    ]
+    assert list(tmp_path.iterdir()) == []
+    assert time.monotonic() - started < 2.0, "checked before simulating"
+
+
+def test_a_full_disk_is_one_line_naming_the_file_and_leaves_no_partial(tmp_path):
+    out = tmp_path / "x.mcap"
+    proc = popen_rover("simulate", *QUICK, "-o", str(out), max_file_bytes=200_000)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert stderr.splitlines() == [f"rover: error: {out}: cannot write: File too large"]
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("signum", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["TERM", "INT"])
+def test_a_signal_while_writing_leaves_no_partial(tmp_path, signum, status):
+    out = tmp_path / "x.mcap"
+    proc = popen_rover("simulate", *QUICK, "-o", str(out))
+    wait_for_file(tmp_path / ".x.mcap.partial", proc)
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == status, stderr
+    assert "Traceback" not in stderr
+    assert list(tmp_path.iterdir()) == []

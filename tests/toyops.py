@@ -5,10 +5,12 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
+from rover.errors import OutputFailed
 from rover.geometry import quaternion_from_yaw
-from rover.messages import header, make
-from rover.operator import Emit, In, Operator, Out, Source, Watermark
+from rover.messages import ANY, header, make
+from rover.operator import COMPLETE, Emit, In, Operator, Out, RunOutcome, Source, Watermark
 
 
 @dataclass(frozen=True)
@@ -85,11 +87,23 @@ class Explode(Operator):
         yield Emit("imu", msg)
 
 
+class NoDevice(Operator):
+    """Fails in its constructor, as a driver whose device is missing and which says so badly."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        raise FileNotFoundError("/dev/ttyUSB0")
+
+
 @dataclass(frozen=True)
 class TickerParams:
     rate_hz: float = 50.0
     count: int = 0
     """Messages to send before ending; 0 = until stopped."""
+    delay_s: float = 0.0
+    """Wall-clock time before the first message, as a driver waiting for its device."""
 
 
 class Ticker(Source):
@@ -101,6 +115,8 @@ class Ticker(Source):
     def run(self, stop: threading.Event):
         period = 1.0 / self.params.rate_hz
         n = 0
+        if stop.wait(self.params.delay_s):
+            return
         while not stop.is_set() and (self.params.count == 0 or n < self.params.count):
             now = time.time_ns()
             gyro = make("geometry_msgs/msg/Vector3", z=0.1 * n)
@@ -118,3 +134,23 @@ class Merge(Operator):
 
     def on_input(self, port, msg, stamp_ns):
         yield Emit("out", msg)
+
+
+@dataclass(frozen=True)
+class UnwritableParams:
+    path: str = "out/written.txt"
+
+
+class Unwritable(Operator):
+    """Takes anything and writes one file at the end, as an output writer does; pointed at a folder,
+    the write fails and so does the run."""
+
+    variadic = In(ANY, raw=True)
+    Params = UnwritableParams
+
+    def close(self, outcome: RunOutcome = COMPLETE) -> None:
+        if outcome.keeps_outputs:
+            try:
+                Path(self.params.path).write_text("done\n")
+            except OSError as exc:
+                raise OutputFailed(f"{self.params.path}: cannot write: {exc.strerror}") from None

@@ -90,6 +90,7 @@ class Slam(Operator):
         "path": Out("nav_msgs/msg/Path", doc="the best path so far (final poses, then the window)"),
         "tags": Out("rover_msgs/msg/TagArray", doc="every tag heard, with its 2x2 covariance"),
         "diagnostics": Out("rover_msgs/msg/SlamDiagnostics"),
+        "timing": Out("rover_msgs/msg/Timing", doc="wall-clock time of each update, every reweighting pass included"),
     }
     Params = SlamParams
 
@@ -184,7 +185,6 @@ class Slam(Operator):
             make(
                 "rover_msgs/msg/SlamDiagnostics",
                 header=header(stamp, "world"),
-                solve_time_s=elapsed,
                 iterations=result.iterations,
                 window_epochs=len(w.epochs),
                 tags=len(w.tag_ids),
@@ -192,6 +192,8 @@ class Slam(Operator):
             ),
             stamp,
         )
+        timing = make("rover_msgs/msg/Timing", header=header(stamp, "world"), stage="slam.update", wall_s=elapsed)
+        yield Emit("timing", timing, stamp)
 
     def _finals(self, stamp: int):
         """Poses that left the window since the last call, stamped now on the wire."""

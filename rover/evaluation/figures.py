@@ -10,11 +10,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rover.evaluation.metrics import RunRecord, Truth, aoa_errors, poses_at, start_frame
+from rover.formats.atomic_file import write_aside
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 ELLIPSE_SIGMA = 2.0
+
+
+FIGURE_FILES = ("trajectory.png", "robot_error.png", "tag_error.png", "aoa_cdf.png")
+"""Every figure `write_figures` may write, by file name."""
 
 
 def _pyplot() -> Any:
@@ -109,9 +114,13 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
 
 
 def _save(fig: Figure, path: Path, plt: Any) -> Path:
-    partial = path.with_name(f".{path.stem}.partial.png")
-    fig.tight_layout()
-    fig.savefig(partial, dpi=110)
-    plt.close(fig)
-    partial.replace(path)
-    return path
+    """Draw aside and rename into place; nothing is left behind when that fails or is interrupted."""
+
+    def draw(partial: Path) -> None:
+        fig.tight_layout()
+        fig.savefig(partial, dpi=110)
+
+    try:
+        return write_aside(path, draw, path.with_name(f".{path.stem}.partial.png"))
+    finally:
+        plt.close(fig)

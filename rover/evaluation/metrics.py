@@ -100,13 +100,26 @@ class TrajectoryErrors:
     """truth frame -> estimator frame"""
 
 
-def trajectory_errors(truth: Poses2D, estimate: Poses2D, max_diff_s: float = 0.01) -> TrajectoryErrors:
+def trajectory_errors(
+    truth: Poses2D, estimate: Poses2D, max_diff_s: float = 0.01, name: str = "the estimated trajectory"
+) -> TrajectoryErrors:
+    """Errors of `estimate` (called `name` in messages); BadInput when there is nothing to compare: an
+    empty trajectory, or fewer than two estimated poses with a ground-truth pose within `max_diff_s`."""
+    if not max_diff_s >= 0:
+        raise BadInput(f"the largest stamp difference of associated poses is a number >= 0, got {max_diff_s}")
     if len(estimate.stamp_ns) == 0:
-        raise BadInput("the estimated trajectory is empty")
+        raise BadInput(f"{name} is empty")
+    if len(truth.stamp_ns) == 0:
+        raise BadInput("the ground truth has no poses")
     to_start = start_frame(truth, int(estimate.stamp_ns[0]))
     i, j = associate(truth, estimate, max_diff_s)
-    if len(i) == 0:
-        raise BadInput(f"no estimated pose has a ground-truth pose within {max_diff_s} s")
+    if len(i) < 2:
+        spans = f"{name} spans {_span(estimate.stamp_ns)}; the ground truth {_span(truth.stamp_ns)}"
+        if len(i) == 0:
+            raise BadInput(f"{name} and the ground truth do not overlap in time (within {max_diff_s} s): {spans}")
+        raise BadInput(
+            f"only one pose of {name} has a ground-truth pose within {max_diff_s} s, the alignment needs two: {spans}"
+        )
     reference = to_start.apply(truth.xy[i])
     est = estimate.xy[j]
     alignment = fit_rigid(est, reference)
@@ -116,6 +129,18 @@ def trajectory_errors(truth: Poses2D, estimate: Poses2D, max_diff_s: float = 0.0
         alignment,
         to_start,
     )
+
+
+def _span(stamp_ns: np.ndarray) -> str:
+    """The time range of stamps, for messages: `1700000000.000-1700000012.000 s, 2 poses`, in
+    integer arithmetic (a float would round the nanoseconds)."""
+
+    def seconds(ns: int) -> str:
+        ms = (ns + 500_000) // 1_000_000
+        return f"{'-' if ms < 0 else ''}{abs(ms) // 1000}.{abs(ms) % 1000:03d}"
+
+    first, last = int(stamp_ns.min()), int(stamp_ns.max())
+    return f"{seconds(first)}-{seconds(last)} s, {len(stamp_ns)} pose{'s' if len(stamp_ns) != 1 else ''}"
 
 
 @dataclass(frozen=True)
@@ -170,10 +195,10 @@ def angle_stats(errors_rad: np.ndarray, std_rad: np.ndarray) -> dict[str, float]
 
 def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict[str, Any]:
     """metrics.json: robot errors (both trajectories, unaligned and aligned), tag errors, AoA errors."""
-    final = trajectory_errors(truth.trajectory, run.final, max_diff_s)
+    final = trajectory_errors(truth.trajectory, run.final, max_diff_s, "trajectory.tum")
     metrics: dict[str, Any] = {"robot": {"trajectory.tum": {"unaligned": final.unaligned, "aligned": final.aligned}}}
     if len(run.live.stamp_ns):
-        live = trajectory_errors(truth.trajectory, run.live, max_diff_s)
+        live = trajectory_errors(truth.trajectory, run.live, max_diff_s, "trajectory_live.tum")
         metrics["robot"]["trajectory_live.tum"] = {"unaligned": live.unaligned, "aligned": live.aligned}
     start = final.to_start
     tags: dict[str, dict[str, Any]] = {}

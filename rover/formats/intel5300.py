@@ -12,6 +12,21 @@ The results equal those of the tool's own `read_bf_file.m` (raw CSI, antenna per
 records with other codes, corrupt records and garbage are skipped and counted, and framing
 resynchronizes on the next consistent beamforming header, the same whether a log is decoded
 whole or fed in chunks (StreamDecoder).
+
+A record cut short (bytes lost from its end or middle) still claims its full length, so it would
+take the first bytes of what follows as its tail and decode to plausible, wrong CSI. Framing
+tells it by what lies at its claimed end: the record is whole when a record provably starts there
+(a consistent beamforming header, a 0xC1 record ending where the next such header starts, or the
+end of the log); when instead one provably starts inside it, it was cut short, counts as corrupt,
+and framing resumes there; one that runs past the end of the log is corrupt too. What framing
+cannot tell, and takes as it is (counted valid, header intact): a record cut short and followed
+by bytes that start no provable record (garbage, a record that lost its own head, a 0xC1 record
+not followed by a beamforming one), or one that lost exactly as many bytes as the 0xC1 record
+after it holds (its claimed end lands on the next record). Its tail is then those bytes: within
+22 bytes that alters the last 1-2 of 30 subcarriers of a 3x2 or 3x3 record (4 of 3x1, 9 of 1x1),
+beyond that as many subcarriers as the bytes replaced carried; what followed it is skipped up to
+the next record. Streams pay a delay: a record is handed out once the 23 bytes after it (after a
+0xC1 record following it, 23 more) are present, or when the stream ends.
 """
 
 from __future__ import annotations
@@ -30,6 +45,9 @@ from numpy.typing import ArrayLike
 
 BFEE_CODE = 0xBB
 """Code byte of a beamforming report, the only record that carries CSI."""
+FRAME_CODE = 0xC1
+"""Code byte of a received frame's header and payload, the other record real logs interleave
+with beamforming reports; framing trusts it as a record start only when the next one follows it."""
 LENGTH_BYTES = 2
 HEADER_BYTES = 20
 """Notification header; the CSI payload follows it."""
@@ -368,24 +386,25 @@ def _valid_starts(buf: np.ndarray, lo: int, hi: int) -> np.ndarray:
 class _Cursor:
     """Where framing stands between calls, so a log fed in chunks is framed as the whole log.
 
-    `tail_from` is set after a record is taken: a record whose start lies in [tail_from, pos)
-    overlaps that record's last bytes, which means the taken one was cut short (by fewer bytes
-    than a header); framing continues there instead of at `pos`.
+    `pending` is set after a record is framed that was not proven whole yet: it ends at `pos`,
+    and the bytes after `pos` decide whether it was whole or cut short (_FramingPass._settle).
     """
 
     pos: int = 0
     scanning: bool = False
     """Inside garbage: look for the next consistent beamforming header."""
-    tail_from: int | None = None
+    pending: int | None = None
+    """Start of the record framed last, still to settle; it ends at `pos`."""
+    pending_kind: _Kind | None = None
 
     def keep_from(self) -> int:
         """First byte still needed."""
-        return self.pos if self.tail_from is None else min(self.pos, self.tail_from)
+        return self.pos if self.pending is None else min(self.pos, self.pending)
 
     def rebase(self, shift: int) -> None:
         self.pos -= shift
-        if self.tail_from is not None:
-            self.tail_from -= shift
+        if self.pending is not None:
+            self.pending -= shift
 
 
 @dataclass
@@ -416,12 +435,13 @@ class _FramingPass:
 
     At a record boundary the next bytes are taken as a record if they frame as one (see _Kind).
     A record is refused when a consistent beamforming header lies wholly inside it: it was cut
-    short, and the one inside is what follows. One cut short by fewer bytes than a header looks
-    whole and is taken, but framing resumes at the record overlapping its end. Anything else
-    starts garbage, skipped up to the next consistent beamforming header, so no valid record
-    after damage is lost. Every decision uses only bytes present (or knows, when `final`, that
-    none follow), so chunking never changes the result. Runs of back-to-back valid records, the
-    usual case, are taken in one step, so the Python loop turns once per damage, not per record.
+    short, and the one inside is what follows. One cut short by fewer bytes than a header is
+    settled by what follows its claimed end (_settle) before it is counted or handed out.
+    Anything else starts garbage, skipped up to the next consistent beamforming header, so no
+    valid record after damage is lost. Every decision uses only bytes present (or knows, when
+    `final`, that none follow), so chunking never changes the result. Runs of back-to-back
+    valid records, the usual case, are taken in one step, so the Python loop turns once per
+    damage (or record of another code), not per record.
     """
 
     def __init__(self, buf: np.ndarray, cur: _Cursor, final: bool):
@@ -439,19 +459,14 @@ class _FramingPass:
         """Advance the cursor as far as the bytes present decide."""
         cur = self.cur
         while True:
-            if cur.tail_from is not None:
-                if cur.pos > self.decided:
-                    return self.out
-                overlap = self._first_start(cur.tail_from)
-                if overlap is not None and overlap < cur.pos:
-                    cur.pos = overlap
-                cur.tail_from = None
+            if cur.pending is not None and not self._settle():
+                return self.out
             if cur.scanning and not self._scan():
                 return self.out
-            k = int(np.searchsorted(self.starts, cur.pos))
+            k = int(self.starts.searchsorted(cur.pos))
             is_start = k < len(self.starts) and self.starts[k] == cur.pos
             if is_start:
-                b = int(np.searchsorted(self.breaks, k))
+                b = int(self.breaks.searchsorted(k))
                 last = int(self.breaks[b]) if b < len(self.breaks) else len(self.starts) - 1
                 if last > k:
                     self.out.bfee_runs.append(self.starts[k:last])
@@ -460,8 +475,81 @@ class _FramingPass:
                 return self.out
 
     def _first_start(self, at: int) -> int | None:
-        k = int(np.searchsorted(self.starts, at))
+        k = int(self.starts.searchsorted(at))
         return int(self.starts[k]) if k < len(self.starts) else None
+
+    def _is_start(self, at: int) -> bool:
+        """Whether a consistent beamforming record starts at `at` (decided: `at` below self.decided)."""
+        return self._first_start(at) == at
+
+    def _chains(self, at: int) -> bool | None:
+        """Whether the framing of what follows proves a record starts at `at`; None when that needs
+        bytes not present yet.
+
+        Proof is the end of the log, a consistent beamforming header at `at`, or a frame record
+        (FRAME_CODE) at `at` that ends where the first such header after it starts, or where the
+        log ends with none in between.
+        """
+        if self.final and at == self.end:
+            return True
+        if not (self.final or at < self.decided):
+            return None
+        if self._is_start(at):
+            return True
+        buf = self.buf
+        if self.end - at < LENGTH_BYTES + 1 or buf[at + LENGTH_BYTES] != FRAME_CODE:
+            return False
+        length = (int(buf[at]) << 8) | int(buf[at + 1])
+        stop = at + LENGTH_BYTES + length
+        if length < 1 or stop > self.end:
+            return False if self.final or length < 1 else None
+        if self.final and stop == self.end:
+            return self._first_start(at + 1) is None
+        if not (self.final or stop < self.decided):
+            return None
+        return self._first_start(at + 1) == stop
+
+    def _settle(self) -> bool:
+        """Count or hand out the pending record, once the bytes after it tell whether it was whole;
+        False when that needs bytes not present yet.
+
+        A record cut short still claims its full length, so it seems to end inside what follows
+        it. It was whole when a record provably starts
+        where it ends (_chains). Otherwise, when one provably starts inside it (a beamforming
+        header, then within its last RECORD_HEAD_BYTES - 1 bytes, else _one refused it already),
+        it was cut short: it counts as corrupt (garbage if not a beamforming record) and framing
+        resumes at the first such start. When neither, nothing tells, and it is taken as it is.
+        """
+        cur, out, buf = self.cur, self.out, self.buf
+        p, kind, stop = cur.pending, cur.pending_kind, cur.pos
+        assert p is not None
+        whole = self._chains(stop)
+        if whole is None:
+            return False
+        resume = None
+        if not whole:
+            codes = buf[p + 1 + LENGTH_BYTES : min(stop + LENGTH_BYTES, self.end)]
+            for q in (p + 1 + np.flatnonzero((codes == BFEE_CODE) | (codes == FRAME_CODE))).tolist():
+                proven = self._chains(q)
+                if proven is None:
+                    return False
+                if proven:
+                    resume = q
+                    break
+        cur.pending = cur.pending_kind = None
+        if resume is not None:
+            if kind is _Kind.OTHER:
+                out.garbage += resume - p
+            else:
+                out.corrupt += 1
+            cur.pos = resume
+        elif kind is _Kind.BFEE:
+            out.bfee_runs.append(np.array([p], dtype=np.int64))
+        elif kind is _Kind.CORRUPT:
+            out.corrupt += 1
+        else:
+            out.skipped += 1
+        return True
 
     def _scan(self) -> bool:
         """Skip garbage up to the next valid record; False when none is in the bytes present."""
@@ -516,13 +604,7 @@ class _FramingPass:
                 out.corrupt += 1
             cur.pos = resume
             return cut_short
-        if kind is _Kind.BFEE:
-            out.bfee_runs.append(np.array([p], dtype=np.int64))
-        elif kind is _Kind.CORRUPT:
-            out.corrupt += 1
-        else:
-            out.skipped += 1
-        cur.pos, cur.tail_from = stop, max(p + 1, stop - RECORD_HEAD_BYTES + 1)
+        cur.pos, cur.pending, cur.pending_kind = stop, p, kind
         return True
 
 
@@ -593,8 +675,10 @@ def decode_bfee(records: Sequence[bytes], scaled: bool = True) -> CsiRecords:
 class StreamDecoder:
     """Decodes a CSI Tool log arriving in chunks (a growing file, a socket) exactly as the whole.
 
-    Every record is handed out by the call that completes it; `offset` is counted from the start
-    of the stream. Counts of skipped, corrupt and garbage bytes accumulate on the decoder.
+    Every record is handed out by the call that brings the bytes proving it whole (what follows
+    it: the next record's header, see the module docstring) or by close(); `offset` is counted
+    from the start of the stream. Counts of skipped, corrupt and garbage bytes accumulate on the
+    decoder.
     """
 
     def __init__(self, scaled: bool = True):

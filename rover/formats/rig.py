@@ -15,7 +15,7 @@ import numpy as np
 from rover.errors import BadInput, Diagnostic, SpecError
 from rover.formats.wifi import INTEL5300_CHANNELS_5GHZ, channel_freq_hz, freq_channel
 from rover.pipeline import params as P
-from rover.pipeline.spec import did_you_mean, read_document
+from rover.pipeline.spec import did_you_mean, read_yaml_text
 from rover.pipeline.yamlpos import Located, load
 
 TOP_KEYS = ("receiver", "excitation", "tags", "topics", "imu", "sweep")
@@ -301,5 +301,4 @@ class RigInput:
 
 def load_rig(path: str | Path) -> Rig:
     """Read and check a setup.yaml file."""
-    doc = read_document(path)
-    return replace(parse_rig(doc), text=Path(path).read_text(encoding="utf-8"))
+    return rig_from_text(read_yaml_text(path), str(path))

@@ -2,16 +2,26 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from rover.errors import BadInput
 from rover.evaluation.metrics import Poses2D, RunRecord, Truth
-from rover.formats.truth import Trajectory, TruthTag, read_dataset_truth, read_tags_csv, read_tum
+from rover.formats.truth import (
+    Trajectory,
+    TruthTag,
+    csv_float,
+    csv_int,
+    csv_rows,
+    read_dataset_truth,
+    read_tags_csv,
+    read_text,
+    read_tum,
+)
 from rover.geometry import yaw_from_quaternion
 
 RUN_FILE = "run.json"
@@ -22,37 +32,50 @@ def poses_of(trajectory: Trajectory) -> Poses2D:
     return Poses2D(trajectory.stamp_ns, trajectory.xyz[:, :2], yaw_from_quaternion(*trajectory.quat_xyzw.T))
 
 
+RUN_TAG_COLUMNS = ("id", "x", "y", "var_x", "cov_xy", "var_y")
+RESULT_TYPES = {"/rover/tags": "rover_msgs/msg/TagArray", "/rover/aoa": "rover_msgs/msg/Aoa"}
+
+
 def _read_tags(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    ids, xy, cov = [], [], []
-    try:
-        with path.open(newline="", encoding="utf-8") as f:
-            for number, row in enumerate(csv.DictReader(f), 2):
-                try:
-                    ids.append(int(row["id"]))
-                    xy.append([float(row["x"]) if row["x"] else math.nan, float(row["y"]) if row["y"] else math.nan])
-                    cov.append(
-                        [
-                            [float(row["var_x"] or "nan"), float(row["cov_xy"] or "nan")],
-                            [float(row["cov_xy"] or "nan"), float(row["var_y"] or "nan")],
-                        ]
-                    )
-                except (KeyError, TypeError, ValueError):
-                    raise BadInput(f"{path}:{number}: not a tags.csv row: {row}") from None
-    except OSError as exc:
-        raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
+    """A run's tags.csv: ids, final positions and covariances, nan where a cell is empty (a tag never
+    localized); BadInput names the file and line of a missing column, a bad number or a repeated id."""
+    ids: list[int] = []
+    xy: list[list[float]] = []
+    cov: list[list[list[float]]] = []
+    first_line: dict[int, int] = {}
+    for number, row in csv_rows(read_text(path), str(path), RUN_TAG_COLUMNS):
+        where = f"{path}:{number}"
+        tag_id = csv_int(row, "id", where, 2**32)
+        if tag_id in first_line:
+            raise BadInput(f"{where}: tag id {tag_id} repeated (first on line {first_line[tag_id]})")
+        first_line[tag_id] = number
+        x, y, var_x, cov_xy, var_y = (_optional_float(row, c, where) for c in RUN_TAG_COLUMNS[1:])
+        if math.isnan(x) != math.isnan(y):
+            raise BadInput(f"{where}: x and y are both numbers, or both empty for a tag never localized")
+        if not math.isnan(x) and any(math.isnan(v) for v in (var_x, cov_xy, var_y)):
+            raise BadInput(f"{where}: a localized tag has var_x, cov_xy and var_y")
+        ids.append(tag_id)
+        xy.append([x, y])
+        cov.append([[var_x, cov_xy], [cov_xy, var_y]])
     return np.array(ids, dtype=int), np.array(xy).reshape(-1, 2), np.array(cov).reshape(-1, 2, 2)
+
+
+def _optional_float(row: dict[str, str], column: str, where: str) -> float:
+    """A finite number, or nan for an empty cell (a value the run never had)."""
+    return csv_float(row, column, where) if row.get(column, "").strip() else math.nan
 
 
 def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]], list[tuple[int, int, float, float]]]:
     """Tag estimates over time and the AoAs from results.mcap (empty when the file is absent)."""
-    from rover.formats.bag import iter_messages
-    from rover.messages import deserialize
+    from rover.formats.bag import BagReader
 
     history: list[tuple[int, int, float, float, bool]] = []
     aoa: list[tuple[int, int, float, float]] = []
-    if path.exists():
-        for m in iter_messages(path, ["/rover/tags", "/rover/aoa"], failure="cannot read"):
-            msg = deserialize(m.data, m.schema)
+    if not path.exists():
+        return history, aoa
+    with BagReader(path, "cannot read") as bag:
+        for m in bag.messages(RESULT_TYPES):
+            msg = bag.decode(m, RESULT_TYPES[m.topic])
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             if m.topic == "/rover/aoa":
                 aoa.append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
@@ -104,16 +127,51 @@ def load_run(run_dir: str | Path) -> RunRecord:
     return record(final, live, tags, history, aoa)
 
 
-def run_dataset(run_dir: str | Path) -> Path | None:
-    """The dataset a run read, as its run.json names it."""
+@dataclass(frozen=True)
+class RunDescription:
+    """What `rover eval` needs of a run's run.json."""
+
+    dataset: Path | None
+    status: str
+    """complete, partial, interrupted or failed ("" in a run.json written before runs had a status)"""
+    reason: str
+
+
+def read_run_description(run_dir: str | Path) -> RunDescription | None:
+    """The run.json of a run folder; None when there is none."""
     path = Path(run_dir) / RUN_FILE
     if not path.exists():
         return None
     try:
-        dataset = json.loads(path.read_text(encoding="utf-8")).get("dataset")
-    except (OSError, ValueError) as exc:
-        raise BadInput(f"{path}: not a run description: {exc}") from None
-    return Path(dataset) if dataset else None
+        description = json.loads(read_text(path))
+    except (ValueError, RecursionError) as exc:
+        raise BadInput(f"{path}: not a run description: not JSON ({exc})") from None
+    if not isinstance(description, dict):
+        raise BadInput(f"{path}: not a run description: a JSON object, got {_json_type(description)}")
+    for name in ("status", "reason"):
+        if not isinstance(description.get(name, ""), str):
+            raise BadInput(f"{path}: field {name}: a string, got {_json_type(description[name])}")
+    dataset = description.get("dataset")
+    if dataset is not None and not isinstance(dataset, str):
+        raise BadInput(f"{path}: field dataset: a file path (a string), got {_json_type(dataset)}")
+    if dataset is not None and "\x00" in dataset:
+        raise BadInput(f"{path}: field dataset: not a file path (it holds a NUL character)")
+    return RunDescription(
+        Path(dataset) if dataset else None, description.get("status", ""), description.get("reason", "")
+    )
+
+
+def _json_type(value: object) -> str:
+    """The JSON name of a decoded value's type, for messages."""
+    names = {
+        dict: "an object",
+        list: "an array",
+        str: "a string",
+        bool: "a boolean",
+        int: "a number",
+        float: "a number",
+    }
+    return names.get(type(value), "null")
 
 
 def load_truth(source: str | Path, tags_csv: str | Path | None = None) -> Truth | None:
@@ -122,7 +180,7 @@ def load_truth(source: str | Path, tags_csv: str | Path | None = None) -> Truth 
     trajectory: Trajectory | None
     tags: list[TruthTag]
     if source.suffix in (".tum", ".txt"):
-        trajectory, tags = read_tum(source), []
+        trajectory, tags = _in_time_order(read_tum(source)), []
     else:
         if source.is_dir():
             candidates = sorted(source.glob("*.mcap"))
@@ -135,3 +193,9 @@ def load_truth(source: str | Path, tags_csv: str | Path | None = None) -> Truth 
     if tags_csv is not None:
         tags = read_tags_csv(tags_csv)
     return Truth(poses_of(trajectory), {t.id: (np.array(t.xyz[:2]), t.nlos) for t in tags})
+
+
+def _in_time_order(trajectory: Trajectory) -> Trajectory:
+    """The poses sorted by stamp (a TUM file need not be; evo accepts it unsorted too)."""
+    order = np.argsort(trajectory.stamp_ns, kind="stable")
+    return Trajectory(trajectory.stamp_ns[order], trajectory.xyz[order], trajectory.quat_xyzw[order])

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import csv
+import io
+import math
+from collections.abc import Iterator
 from dataclasses import dataclass
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +15,10 @@ import numpy as np
 from rover.errors import BadInput
 
 TAG_COLUMNS = ("id", "channel", "x", "y", "z", "nlos")
+TUM_FIELDS = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
+STAMP_LIMIT_S = 2**31
+"""Stamps are seconds since 1970 below 2**31 (2038-01-19): a ROS 2 header holds its seconds as int32."""
+STAMP_LIMIT_NS = STAMP_LIMIT_S * 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -30,87 +38,175 @@ class TruthTag:
     nlos: bool
 
 
-def read_tum(path: str | Path) -> Trajectory:
-    """Read a TUM trajectory (comments with #); BadInput names the file and line of a bad row."""
+def read_text(path: str | Path) -> str:
+    """A UTF-8 text file's content (a byte-order mark dropped); BadInput naming the file when it
+    cannot be read or holds bytes that are not text."""
     path = Path(path)
-    rows = []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        data = path.read_bytes()
     except OSError as exc:
         raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
-    for number, line in enumerate(lines, 1):
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise BadInput(
+            f"{path}: not a text file (byte 0x{data[exc.start]:02x} at offset {exc.start} is not UTF-8)"
+        ) from None
+    if "\x00" in text:
+        raise BadInput(f"{path}: not a text file (NUL byte at offset {data.index(0)})")
+    return text
+
+
+def _excerpt(line: str, limit: int = 60) -> str:
+    """A line quoted for a one-line message: control characters escaped, long lines cut."""
+    text = line.strip()
+    return repr(text if len(text) <= limit else text[:limit] + "...")
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory (comments with #); BadInput names the file and line of a bad row.
+
+    Stamps are parsed exactly (any decimal or exponent notation) and rounded to the nanosecond;
+    they must lie in [0, 2**31) seconds, the range of a ROS 2 stamp.
+    """
+    path = Path(path)
+    stamps, rows = [], []
+    for number, line in enumerate(read_text(path).splitlines(), 1):
         text = line.split("#", 1)[0].strip()
         if not text:
             continue
+        where = f"{path}:{number}"
         parts = text.replace(",", " ").split()
+        if len(parts) != len(TUM_FIELDS):
+            raise BadInput(
+                f"{where}: a TUM row has 8 numbers (t x y z qx qy qz qw), got {len(parts)}: {_excerpt(line)}"
+            )
         try:
-            values = [float(v) for v in parts]
+            values = [float(v) for v in parts[1:]]
         except ValueError:
-            raise BadInput(f"{path}:{number}: not a TUM row (t x y z qx qy qz qw): {line.strip()!r}") from None
-        if len(values) != 8 or not np.all(np.isfinite(values)):
-            raise BadInput(f"{path}:{number}: a TUM row has 8 finite numbers (t x y z qx qy qz qw), got {len(values)}")
-        rows.append((parts[0], values))
+            raise BadInput(f"{where}: not a TUM row (t x y z qx qy qz qw): {_excerpt(line)}") from None
+        for name, value, word in zip(TUM_FIELDS[1:], values, parts[1:], strict=True):
+            if not math.isfinite(value):
+                raise BadInput(f"{where}: {name} has a non-finite value {_excerpt(word, 20)}")
+        stamps.append(_seconds_to_ns(parts[0], where))
+        rows.append(values)
     if not rows:
         raise BadInput(f"{path}: no poses")
-    stamps = np.array([_seconds_to_ns(text) for text, _ in rows], dtype=np.int64)
-    data = np.array([v for _, v in rows])
-    return Trajectory(stamps, data[:, 1:4], data[:, 4:8])
+    data = np.array(rows, dtype=np.float64)
+    return Trajectory(np.array(stamps, dtype=np.int64), data[:, 0:3], data[:, 3:7])
 
 
-def _seconds_to_ns(text: str) -> int:
-    """Seconds as written (e.g. `1700000000.010000`) to integer nanoseconds, without float rounding."""
-    whole, _, frac = text.partition(".")
-    return int(whole) * 1_000_000_000 + int((frac + "000000000")[:9]) * (-1 if whole.startswith("-") else 1)
+def _seconds_to_ns(text: str, where: str) -> int:
+    """Seconds as written (e.g. `1700000000.010000`, `1.7e9`) to integer nanoseconds, without float
+    rounding; BadInput at `where` for a stamp that is not a number or not in [0, 2**31) s."""
+    quoted = _excerpt(text, 30)
+    try:
+        seconds = Decimal(text)
+    except InvalidOperation:
+        raise BadInput(f"{where}: t is not a number: {quoted}") from None
+    if not seconds.is_finite():
+        raise BadInput(f"{where}: t has a non-finite value {quoted}")
+    if seconds < 0:
+        raise BadInput(f"{where}: t is negative: {quoted} (stamps are seconds since 1970)")
+    if seconds >= STAMP_LIMIT_S or (ns := int(seconds.scaleb(9).to_integral_value(ROUND_HALF_EVEN))) >= STAMP_LIMIT_NS:
+        raise BadInput(f"{where}: t is {quoted} s, not before 2**31 s (2038-01-19), the end of a ROS 2 stamp")
+    return ns
 
 
 def read_tags_csv(path: str | Path) -> list[TruthTag]:
     """Read `id,channel,x,y,z,nlos` (nlos optional, 0/1)."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
-    return parse_tags_csv(text, str(path))
+    return parse_tags_csv(read_text(path), str(path))
 
 
 def parse_tags_csv(text: str, source: str) -> list[TruthTag]:
-    """The tag truth CSV from text (as a dataset's `rover.truth` metadata carries it)."""
-    reader = csv.DictReader(text.splitlines())
-    missing = [c for c in TAG_COLUMNS[:5] if c not in (reader.fieldnames or [])]
-    if missing:
-        raise BadInput(f"{source}:1: missing column(s) {', '.join(missing)} (expected {','.join(TAG_COLUMNS)})")
-    tags = []
-    for row in reader:
-        try:
-            tags.append(
-                TruthTag(
-                    int(row["id"]),
-                    int(row["channel"]),
-                    (float(row["x"]), float(row["y"]), float(row["z"])),
-                    bool(int(row.get("nlos") or 0)),
-                )
-            )
-        except (TypeError, ValueError):
-            raise BadInput(f"{source}:{reader.line_num}: bad tag row {row}") from None
+    """The tag truth CSV from text (as a dataset's `rover.truth` metadata carries it); BadInput names
+    `source` and the line of a missing column or value, a bad number, a repeated id."""
+    tags: list[TruthTag] = []
+    first_line: dict[int, int] = {}
+    for number, row in csv_rows(text, source, TAG_COLUMNS[:5], "id,channel,x,y,z[,nlos]"):
+        where = f"{source}:{number}"
+        tag_id = csv_int(row, "id", where, 2**32)
+        if tag_id in first_line:
+            raise BadInput(f"{where}: tag id {tag_id} repeated (first on line {first_line[tag_id]})")
+        first_line[tag_id] = number
+        nlos = csv_int(row, "nlos", where, 2) if row.get("nlos", "").strip() else 0
+        xyz = (csv_float(row, "x", where), csv_float(row, "y", where), csv_float(row, "z", where))
+        tags.append(TruthTag(tag_id, csv_int(row, "channel", where, 2**16), xyz, bool(nlos)))
     return tags
+
+
+def csv_rows(
+    text: str, source: str, required: tuple[str, ...], expected: str = ""
+) -> Iterator[tuple[int, dict[str, str]]]:
+    """The rows of a CSV text with a header line, by column name, with their line numbers; BadInput
+    naming `source` for a missing column (`expected` says which are, by default `required`), a row
+    without a value for one, or text that is not CSV."""
+    reader = csv.reader(io.StringIO(text.removeprefix("\ufeff"), newline=""))
+    try:
+        header = [name.strip() for name in next(reader, [])]
+        missing = [c for c in required if c not in header]
+        if missing:
+            expected = expected or ",".join(required)
+            raise BadInput(f"{source}:1: missing column(s) {', '.join(missing)} (expected {expected})")
+        for fields in reader:
+            if not any(f.strip() for f in fields):
+                continue
+            if len(fields) < len(header) and (absent := [c for c in required if c not in header[: len(fields)]]):
+                raise BadInput(
+                    f"{source}:{reader.line_num}: {len(fields)} field(s), no value for column(s) {', '.join(absent)}"
+                )
+            yield reader.line_num, dict(zip(header, fields, strict=False))
+    except csv.Error as exc:
+        raise BadInput(f"{source}:{reader.line_num}: not CSV: {exc}") from None
+
+
+def csv_float(row: dict[str, str], column: str, where: str) -> float:
+    """A finite number from a CSV row; BadInput at `where` naming the column."""
+    text = row.get(column, "").strip()
+    try:
+        value = float(text)
+    except ValueError:
+        raise BadInput(f"{where}: column {column} is {_excerpt(text, 20) if text else 'empty'}, not a number") from None
+    if not math.isfinite(value):
+        raise BadInput(f"{where}: column {column} has a non-finite value {_excerpt(text, 20)}")
+    return value
+
+
+def csv_int(row: dict[str, str], column: str, where: str, limit: int) -> int:
+    """An integer in [0, limit) from a CSV row; BadInput at `where` naming the column."""
+    text = row.get(column, "").strip()
+    try:
+        value = int(text)
+    except ValueError:
+        raise BadInput(
+            f"{where}: column {column} is {_excerpt(text, 20) if text else 'empty'}, not an integer"
+        ) from None
+    if not 0 <= value < limit:
+        raise BadInput(
+            f"{where}: column {column} is {text if len(text) <= 20 else _excerpt(text, 20)}, outside 0..{limit - 1}"
+        )
+    return value
 
 
 def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthTag]]:
     """The ground truth a dataset carries: `/groundtruth/pose` and the tags (metadata `rover.truth`,
-    else `/groundtruth/tags`); (None, []) when it has none."""
+    else `/groundtruth/tags`); (None, []) when it has none. BadInput names the file and topic of a
+    message of another type, one that does not deserialize or a non-finite pose."""
     from rover.formats.bag import BagReader
-    from rover.messages import deserialize
 
     path = Path(path)
+    types = {"/groundtruth/pose": "geometry_msgs/msg/PoseStamped", "/groundtruth/tags": "rover_msgs/msg/TagArray"}
     stamps, xyz, quat, tags = [], [], [], []
     with BagReader(path, "cannot read the dataset's ground truth") as bag:
         meta = bag.metadata()
-        for message in bag.messages(["/groundtruth/pose", "/groundtruth/tags"], log_time_order=False):
-            msg = deserialize(message.data, message.schema)
+        for message in bag.messages(types, log_time_order=False):
+            msg = bag.decode(message, types[message.topic])
             if message.topic == "/groundtruth/tags":
                 tags = [TruthTag(t.id, t.channel, (t.position.x, t.position.y, t.position.z), False) for t in msg.tags]
                 continue
             p, q = msg.pose.position, msg.pose.orientation
+            if not all(math.isfinite(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)):
+                raise BadInput(f"{path}: topic {message.topic}: a non-finite pose at {message.log_time_ns} ns")
             stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
             xyz.append((p.x, p.y, p.z))
             quat.append((q.x, q.y, q.z, q.w))

@@ -6,6 +6,7 @@ collected here; what needs the operator classes is checked in `rover.pipeline.va
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
 from difflib import get_close_matches
@@ -14,7 +15,7 @@ from typing import Any
 
 from rover.errors import BadInput, Diagnostic
 from rover.pipeline import params as P
-from rover.pipeline.yamlpos import Located, load
+from rover.pipeline.yamlpos import MAX_YAML_BYTES, Located, load, size_error
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 VAR_RE = re.compile(r"\$\{([^}]*)\}")
@@ -257,13 +258,26 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
     return PipelineSpec(doc.file, name, variables, hosts, operators, doc, set_vars), col.problems
 
 
-def read_document(path: str | Path) -> Located:
-    """Read and safely load a YAML file; a missing or unreadable file is BadInput naming it."""
+def read_yaml_text(path: str | Path) -> str:
+    """The text of a YAML file a user gives (pipeline, setup, scenario); a missing, unreadable or
+    non-UTF-8 file is BadInput naming it. A file over MAX_YAML_BYTES is refused from its size
+    (or, for a pipe, after that many characters), never read whole."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        with path.open(encoding="utf-8") as stream:
+            size = os.fstat(stream.fileno()).st_size
+            if size > MAX_YAML_BYTES:
+                raise size_error(str(path), size)
+            text = stream.read(MAX_YAML_BYTES + 1)
+        if len(text) > MAX_YAML_BYTES:
+            raise size_error(str(path), None)
     except FileNotFoundError:
         raise BadInput(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise BadInput(f"{path}: cannot read: {exc}") from None
-    return load(text, str(path))
+    return text
+
+
+def read_document(path: str | Path) -> Located:
+    """Read and safely load a YAML file (see `read_yaml_text`)."""
+    return load(read_yaml_text(path), str(path))

@@ -163,18 +163,29 @@ def _check_ports(
 
 
 def _check_cycles(doc: Located, specs: dict[str, OperatorSpec], problems: list[Diagnostic]) -> None:
+    """Depth-first search along inputs, with an explicit stack: a chain of thousands of operators
+    listed downstream-first is as deep as it is long, too deep for recursion."""
     WHITE, GREY, BLACK = 0, 1, 2
     state = {name: WHITE for name in specs}
-    stack: list[str] = []
-
-    def visit(name: str) -> None:
-        state[name] = GREY
-        stack.append(name)
-        for wire in specs[name].inputs.values():
+    for start in specs:
+        if state[start] != WHITE:
+            continue
+        state[start] = GREY
+        path = [start]
+        position = {start: 0}
+        pending = [iter(specs[start].inputs.values())]
+        while pending:
+            name = path[-1]
+            wire = next(pending[-1], None)
+            if wire is None:
+                pending.pop()
+                del position[path.pop()]
+                state[name] = BLACK
+                continue
             if wire.source not in specs:
                 continue
             if state[wire.source] == GREY:
-                loop = stack[stack.index(wire.source) :] + [wire.source]
+                loop = path[position[wire.source] :] + [wire.source]
                 problems.append(
                     doc.diag(
                         ("operators", name, "inputs", wire.port),
@@ -182,13 +193,10 @@ def _check_cycles(doc: Located, specs: dict[str, OperatorSpec], problems: list[D
                     )
                 )
             elif state[wire.source] == WHITE:
-                visit(wire.source)
-        stack.pop()
-        state[name] = BLACK
-
-    for name in specs:
-        if state[name] == WHITE:
-            visit(name)
+                state[wire.source] = GREY
+                position[wire.source] = len(path)
+                path.append(wire.source)
+                pending.append(iter(specs[wire.source].inputs.values()))
 
 
 def _endpoint_parts(endpoint: str) -> tuple[str, str, str]:

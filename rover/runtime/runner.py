@@ -23,9 +23,9 @@ from typing import Any
 
 import zenoh
 
-from rover.errors import BadInput, OperatorFailed, PeerLost
+from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError
 from rover.messages import ANY, Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
-from rover.operator import Emit, Operator, Source, Watermark
+from rover.operator import Emit, Operator, OperatorCounts, RunOutcome, Source, Watermark
 from rover.pipeline.validation import Node, Pipeline
 from rover.runtime.scheduler import INF, EventTimeMerger
 from rover.transport import codec, keys
@@ -35,8 +35,13 @@ log = logging.getLogger("rover")
 
 WATERMARK_INTERVAL_NS = 100_000_000
 """Event time between watermarks on an output that has nothing else to say."""
-DRAIN_S = 1.5
-"""After an interrupt, how long operators may drain what is queued before the run is cut."""
+STOP_BUDGET_S = 1.6
+"""After an interrupt, the time until the process has finished its outputs (the promise is 2 s)."""
+DRAIN_S = 0.8
+"""After an interrupt, how long operators may drain what is queued before the run is cut; the
+rest of the budget is for finishing the outputs."""
+JOIN_S = 0.3
+"""After the run is cut, how long all threads together may take to leave their handlers."""
 POLL_S = 0.05
 _KNOWN = typestore.fielddefs
 READY_LOG_S = 5.0
@@ -53,6 +58,10 @@ class Stats:
     sent: Counter[str] = field(default_factory=Counter)
     dropped: Counter[str] = field(default_factory=Counter)
     late: Counter[str] = field(default_factory=Counter)
+
+    def counts(self, operator_drops: Counter[str]) -> OperatorCounts:
+        """A copy for the run's outcome, with the operator's own drops by reason."""
+        return OperatorCounts(dict(self.received), dict(self.sent), {**self.dropped, **operator_drops})
 
     def line(self, name: str) -> str:
         def fmt(c: Counter[str]) -> str:
@@ -275,7 +284,12 @@ class OperatorTask(Task):
             for port, stamp, msg in merger.pop_ready():
                 self.publish(op.on_input(port, msg, stamp), stamp)
             self.advance(merger.safe_time() - op.lateness_s * 1e9)
-        self.publish(op.on_end(), int(max(o.last_ns for o in self.outputs.values())) if self.outputs else 0)
+        self.publish(op.on_end(), self.last_stamp())
+
+    def last_stamp(self) -> int:
+        """The latest stamp sent on any output, for what `on_end` emits without one (0 before any)."""
+        sent = [o.last_ns for o in self.outputs.values() if o.last_ns != -INF]
+        return int(max(sent)) if sent else 0
 
 
 def _report_drops(task: Task) -> None:
@@ -340,6 +354,8 @@ class Runner:
         self.stop = threading.Event()
         self.abort = threading.Event()
         self.interrupted: int | None = None
+        self.stopped_at: float | None = None
+        """`time.monotonic()` of the first interrupt"""
         self.tasks: list[Task] = []
         self._host_states: dict[str, set[str]] = {"ready": set(), "done": set(), "lost": set()}
         self._host_lock = threading.Condition()
@@ -351,31 +367,94 @@ class Runner:
         return SessionSpec(h.listen, h.connect, h.connect_timeout_s, self.host)
 
     def request_stop(self, signum: int) -> None:
+        if self.stopped_at is None:
+            self.stopped_at = time.monotonic()
         self.interrupted = signum
         self.stop.set()
 
     def run(self) -> int:
-        """Run to the end; return the exit status (0, or 128 + signal after an interrupt)."""
+        """Run to the end; return the exit status (0, or 128 + signal after an interrupt).
+
+        Every operator built is closed and, once the run began, told the outcome (`Operator.report`),
+        whatever happened: a failed run raises its error afterwards, and an operator that cannot
+        finish its outputs fails the run (`OutputFailed`). A run that never began (bad input found
+        while building the operators) leaves the output folder as it was."""
+        handlers = self._install_signals()
+        try:
+            return self._run_and_close()
+        finally:
+            for sig, old in handlers.items():
+                signal.signal(sig, old)
+
+    def _run_and_close(self) -> int:
         ops: dict[str, Operator] = {}
-        complete = False
+        error: RoverError | None = None
+        began = False
         try:
             for node in self.nodes:
-                ops[node.name] = node.build()
-            handlers = self._install_signals()
-            try:
-                with open_session(self.session_spec()) as session:
-                    self._run(session, ops)
-            finally:
-                for sig, old in handlers.items():
-                    signal.signal(sig, old)
-            complete = True
-        finally:
-            for name, op in ops.items():
-                try:
-                    op.close(complete)
-                except Exception as exc:  # noqa: BLE001 - reported; the other operators still close
-                    log.error("operator %r failed to close: %s", name, exc)
+                ops[node.name] = self._build(node)
+            began = True
+            self._start(ops)
+            with open_session(self.session_spec()) as session:
+                self._run(session, ops)
+        except RoverError as exc:
+            error = exc
+        outcome = self._outcome(error)
+        failures = [f"operator {name!r}: {problem}" for name, problem in self._each(ops, "close", outcome)]
+        if failures and error is None:
+            error = OutputFailed("; ".join(failures))
+            outcome = self._outcome(error)
+        for name, problem in self._each(ops, "report", outcome) if began else ():
+            log.error("operator %r could not report the run: %s", name, problem)
+        if error is not None:
+            raise error
         return 128 + self.interrupted if self.interrupted else 0
+
+    @staticmethod
+    def _build(node: Node) -> Operator:
+        """The node's operator; a constructor that fails other than on bad input fails the run, in one line."""
+        try:
+            return node.build()
+        except RoverError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a user's operator: reported like a failing handler
+            raise OperatorFailed(
+                f"operator {node.name!r} ({node.spec.uses}) failed to start: {type(exc).__name__}: {exc}"
+            ) from exc
+
+    @staticmethod
+    def _start(ops: dict[str, Operator]) -> None:
+        """`start` every operator, even after one failed: each removes what an earlier run left, so
+        a run that fails here leaves no stale result beside its run.json either."""
+        failed: RoverError | None = None
+        for op in ops.values():
+            try:
+                op.start()
+            except RoverError as exc:
+                failed = failed or exc
+        if failed is not None:
+            raise failed
+
+    def _outcome(self, error: RoverError | None) -> RunOutcome:
+        counts = {t.name: t.stats.counts(t.op.drops) for t in self.tasks}
+        if error is not None:
+            return RunOutcome("failed", str(error), counts)
+        if self.interrupted:
+            name = signal.Signals(self.interrupted).name
+            deadline = (self.stopped_at or time.monotonic()) + STOP_BUDGET_S
+            return RunOutcome("interrupted", f"stopped by {name}", counts, deadline)
+        return RunOutcome("complete", "", counts)
+
+    @staticmethod
+    def _each(ops: dict[str, Operator], hook: str, outcome: RunOutcome) -> list[tuple[str, Exception]]:
+        """Call `close` or `report` on every operator; the ones that raised, with their errors."""
+        failed = []
+        for name, op in ops.items():
+            try:
+                getattr(op, hook)(outcome)
+            except Exception as exc:  # noqa: BLE001 - collected; the other operators still close
+                failed.append((name, exc))
+        return failed
 
     def _install_signals(self) -> dict[signal.Signals, _SignalHandler]:
         if threading.current_thread() is not threading.main_thread():
@@ -397,16 +476,17 @@ class Runner:
                 self._start_and_wait()
         finally:
             self.abort.set()
+            joined_by = time.monotonic() + JOIN_S
             for task in self.tasks:
                 if task.thread.ident is not None:
-                    task.thread.join(timeout=1.0)
+                    task.thread.join(timeout=max(0.0, joined_by - time.monotonic()))
             for task in self.tasks:
                 log.log(logging.WARNING if task.stats.dropped else logging.INFO, "%s", task.stats.line(task.name))
                 _report_drops(task)
         failed = next((t for t in self.tasks if t.error is not None), None)
         if failed is not None:
             exc = failed.error
-            if isinstance(exc, (OperatorFailed, BadInput)):
+            if isinstance(exc, (OperatorFailed, OutputFailed, BadInput)):
                 raise exc
             raise OperatorFailed(
                 f"operator {failed.name!r} ({failed.node.spec.uses}) failed: {type(exc).__name__}: {exc}"
@@ -440,7 +520,7 @@ class Runner:
         with _ProgressBar([t.op for t in self.tasks if isinstance(t, SourceTask)]) as bar:
             while not all(t.done.is_set() for t in self.tasks):
                 if self.stop.is_set() and deadline is None:
-                    deadline = time.monotonic() + DRAIN_S
+                    deadline = (self.stopped_at or time.monotonic()) + DRAIN_S
                 if deadline is not None and time.monotonic() > deadline:
                     self.abort.set()
                     break
