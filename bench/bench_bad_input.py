@@ -39,6 +39,14 @@ class Row:
     wall_s: float
     peak_mb: float
 
+    HEADER = f"{'input':<40} {'status':>6} {'lines':>5} {'traceback':>9} {'partial':>7} {'wall s':>7} {'peak MB':>8}"
+
+    def line(self) -> str:
+        return (
+            f"{self.input:<40} {self.status:>6} {self.lines:>5} {'YES' if self.traceback else 'no':>9} "
+            f"{self.leftovers:>7} {self.wall_s:>7.2f} {self.peak_mb:>8.0f}"
+        )
+
 
 def rover(
     *args: str, cwd: Path, max_file_bytes: int | None = None, stop_after: Callable[[], bool] | None = None
@@ -94,9 +102,11 @@ def table_rows(work: Path, dataset: Path) -> list[Row]:
         folder = work / f"case{len(rows)}"
         folder.mkdir()
         for fname, data in files.items():
+            (folder / fname).parent.mkdir(parents=True, exist_ok=True)
             (folder / fname).write_bytes(data.encode() if isinstance(data, str) else data)
         rows.append(row(name, folder, *args, **kw))
         shutil.rmtree(folder)
+        print(rows[-1].line(), flush=True)
 
     case("pipeline: alias bomb, 9 levels", {"p.yaml": alias_bomb(9)}, "check", "p.yaml")
     case("pipeline: alias bomb, 7 levels", {"p.yaml": alias_bomb(7)}, "check", "p.yaml")
@@ -105,10 +115,12 @@ def table_rows(work: Path, dataset: Path) -> list[Row]:
     case("--set nested 900 deep", {}, "check", str(Path(__file__).parents[1] / "pipeline.yaml"), "--set",
          "x=" + "[" * 900 + "]" * 900)  # fmt: skip
     case("a 50 MB pipeline file", {"p.yaml": "# " + "x" * (50 * 2**20) + "\n"}, "check", "p.yaml")
-    good_run: dict[str, bytes | str] = {"run/trajectory.tum": "1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n"}
+    good_run: dict[str, bytes | str] = {
+        "run/trajectory.tum": "1700000000.0 0 0 0 0 0 0 1\n1700000001.0 1 0 0 0 0 0 1\n"
+    }
     for label, text in (
-        ("1.7e9", "1.7e9 0 0 0 0 0 0 1\n1.7000001e9 1 0 0 0 0 0 1\n"),
-        ("...5e0", "1700000000.5e0 0 0 0 0 0 0 1\n"),
+        ("1.7e9 (valid)", "1.7e9 0 0 0 0 0 0 1\n1.700000001e9 1 0 0 0 0 0 1\n"),
+        ("...5e0 (valid)", "1700000000.0e0 0 0 0 0 0 0 1\n1700000001.0e0 1 0 0 0 0 0 1\n"),
         ("1e20", "1e20 0 0 0 0 0 0 1\n"),
         ("negative", "-5.0 0 0 0 0 0 0 1\n"),
         ("NaN", "1.0 nan 0 0 0 0 0 1\n"),
@@ -130,7 +142,7 @@ def table_rows(work: Path, dataset: Path) -> list[Row]:
     case("info on a corrupt chunk", {"d.mcap": bytes(corrupt)}, "info", "d.mcap")
     eval_cases: tuple[tuple[str, dict[str, bytes | str]], ...] = (
         ("a binary trajectory", {"run/trajectory.tum": os.urandom(2048)}),
-        ("1.7e9 stamps", {"run/trajectory.tum": "1.7e9 0 0 0 0 0 0 1\n"}),
+        ("1.7e9 stamps (valid)", {"run/trajectory.tum": "1.7e9 0 0 0 0 0 0 1\n1.700000001e9 1 0 0 0 0 0 1\n"}),
         ("run.json = []", {**good_run, "run/run.json": "[]"}),
         ('run.json = {"dataset": 5}', {**good_run, "run/run.json": '{"dataset": 5}'}),
         ("a 3-byte results.mcap", {**good_run, "run/results.mcap": "abc"}),
@@ -179,14 +191,13 @@ def main() -> None:
         work = Path(tmp)
         dataset = work / "quick.mcap"
         subprocess.run([sys.executable, "-m", "rover.cli", "-q", "simulate", *QUICK, "-o", str(dataset)], check=True)
+        print(Row.HEADER)
         rows = table_rows(work, dataset)
-        print(f"{'input':<40} {'status':>6} {'lines':>5} {'traceback':>9} {'partial':>7} {'wall s':>7} {'peak MB':>8}")
-        for r in rows:
-            print(
-                f"{r.input:<40} {r.status:>6} {r.lines:>5} {'YES' if r.traceback else 'no':>9} "
-                f"{r.leftovers:>7} {r.wall_s:>7.2f} {r.peak_mb:>8.0f}"
-            )
-        stop = stop_time(work, dataset)
+        paper = work / "paper.mcap"  # the paper's 180 s run: long enough to stop in the middle
+        subprocess.run(
+            [sys.executable, "-m", "rover.cli", "-q", "simulate", "--seed", "1", "-o", str(paper)], check=True
+        )
+        stop = stop_time(work, paper)
         print(
             f"SIGINT during a run with ground truth: status {stop['status']}, exit after {stop['stop_s']:.2f} s "
             f"(goal < {STOP_GOAL_S:g} s), estimates written: {stop['estimates_written']}"
