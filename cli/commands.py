@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import threading
@@ -222,6 +223,28 @@ def _add_set(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _seconds(text: str) -> float:
+    """--start/--end: a number of seconds from 0 to 2**31 (a ROS 2 stamp's range)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 <= value < 2**31:
+        raise argparse.ArgumentTypeError(f"seconds from 0 to 2**31, got {text!r}")
+    return value
+
+
+def _seed(text: str) -> int:
+    """--seed: a whole number from 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a whole number from 0, got {text!r}")
+    return value
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="rover", description="Localize a robot and WiFi backscatter tags with AoA-IMU SLAM, as a Zenoh dataflow."
@@ -268,8 +291,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
     p.add_argument("--setup", help="setup.yaml (default: the recording folder's)")
     p.add_argument("--topic", action="append", metavar="ROLE=/NAME", help="source topic of csi, imu or odom")
-    p.add_argument("--start", type=float, help="seconds from the start (or absolute seconds)")
-    p.add_argument("--end", type=float, help="seconds from the start (or absolute seconds)")
+    p.add_argument("--start", type=_seconds, help="seconds from the start (or absolute seconds)")
+    p.add_argument("--end", type=_seconds, help="seconds from the start (or absolute seconds)")
     p.add_argument("--truth", help="ground-truth trajectory: a TUM file, or a dataset with /groundtruth/pose")
     p.add_argument("--tags", help="ground-truth tags (CSV: id,channel,x,y,z,nlos)")
     p.add_argument("--force", action="store_true", help="replace an existing output")
@@ -277,7 +300,7 @@ def parser() -> argparse.ArgumentParser:
 
     p = command("simulate", help="a dataset with ground truth from a scenario")
     p.add_argument("--scenario", default="paper", help="a built-in scenario name or a scenario .yaml file")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0, help="a whole number from 0 (the same seed gives the same bytes)")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scenario value")
     p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
     p.add_argument("--force", action="store_true", help="replace an existing output")

@@ -146,6 +146,14 @@ def _read_guarded(records: Iterator[T], bags: list[Path]) -> Iterator[T]:
         yield record
 
 
+def _stamp_of(payload: bytes | None) -> int | None:
+    """The header stamp of a CDR payload; None when there is none or it is too short to hold one."""
+    try:
+        return cdr_stamp_ns(payload) if payload is not None else None
+    except (ValueError, struct.error):
+        return None
+
+
 def _stamp(msg: Any, fallback_ns: int) -> int:
     stamp = getattr(getattr(msg, "header", None), "stamp", None)
     return stamp.sec * 1_000_000_000 + stamp.nanosec if stamp is not None else fallback_ns
@@ -293,11 +301,18 @@ def _dataset_setup(rig: Rig) -> str:
     return yaml.safe_dump(data, sort_keys=False)
 
 
+def _resolved(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError) as exc:  # RuntimeError: a symbolic link loop (Python 3.11)
+        raise BadInput(f"{path}: cannot resolve the path: {exc}") from None
+
+
 def _check_not_an_input(output: Path, inputs: Sequence[Path]) -> None:
     """Reject an output that is one of the inputs or inside a bag folder read: --force would destroy it."""
-    target = output.resolve()
+    target = _resolved(output)
     for source in inputs:
-        resolved = source.resolve()
+        resolved = _resolved(source)
         if target == resolved or (output.exists() and source.exists() and output.samefile(source)):
             raise BadInput(f"{output}: is also an input ({source}); converting onto it would destroy it")
         if source.is_dir() and resolved in target.parents:
@@ -372,16 +387,20 @@ def convert(
                 progress(n, total)
             role = role_of[conn.topic]
             payload = _as_rover_cdr(reader, conn, raw, role, same_layout)
-            if payload is None:
+            stamp = _stamp_of(payload)
+            if payload is None or stamp is None:
                 report.dropped[f"{role}: undecodable"] += 1
                 continue
-            stamp = cdr_stamp_ns(payload)
             if (lo is not None and stamp < lo) or (hi is not None and stamp > hi):
                 continue
             if stamp < last.get(role, stamp):
                 report.resorted[role] += 1
             last[role] = max(stamp, last.get(role, stamp))
-            converted = imu.convert(stamp, payload) if role == "imu" else [(stamp, Raw(ROLES[role], payload))]
+            try:
+                converted = imu.convert(stamp, payload) if role == "imu" else [(stamp, Raw(ROLES[role], payload))]
+            except struct.error:  # a passed-through message shorter than its type's layout
+                report.dropped[f"{role}: undecodable"] += 1
+                continue
             rows += [(s, len(rows) + k, OUTPUT_TOPICS[role], m) for k, (s, m) in enumerate(converted)]
         rows += [(s, len(rows) + k, OUTPUT_TOPICS["imu"], m) for k, (s, m) in enumerate(imu.flush())]
     finally:

@@ -34,6 +34,46 @@ def _metadata_yaml(path: str, record: str, text: str) -> dict[str, Any]:
     return data
 
 
+@dataclass(frozen=True)
+class Simulation:
+    """What `rover simulate` recorded about a dataset (metadata `rover.simulation`)."""
+
+    scenario: str
+    seed: int | None
+    path_length_m: float | None
+    nlos: dict[str, bool]
+    direct_to_multipath_db: dict[str, float]
+
+
+def _simulation(path: str, text: str) -> Simulation:
+    """The simulation record, its types checked (the file is untrusted): BadInput naming the field."""
+    sim = _metadata_yaml(path, "rover.simulation", text)
+
+    def bad(name: str, expected: str) -> BadInput:
+        return BadInput(f"{path}: metadata record 'rover.simulation': field {name}: {expected}")
+
+    def number(value: Any) -> bool:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+
+    seed, length = sim.get("seed"), sim.get("path_length_m")
+    if seed is not None and not (isinstance(seed, int) and not isinstance(seed, bool)):
+        raise bad("seed", "a whole number")
+    if length is not None and not number(length):
+        raise bad("path_length_m", "a number")
+    nlos, ratios = sim.get("nlos") or {}, sim.get("direct_to_multipath_db") or {}
+    if not isinstance(nlos, dict) or not all(isinstance(v, bool) for v in nlos.values()):
+        raise bad("nlos", "a mapping of tag to true or false")
+    if not isinstance(ratios, dict) or not all(number(v) for v in ratios.values()):
+        raise bad("direct_to_multipath_db", "a mapping of tag to a number of dB")
+    return Simulation(
+        str(sim.get("scenario", "")),
+        seed,
+        None if length is None else float(length),
+        {str(k): v for k, v in nlos.items()},
+        {str(k): float(v) for k, v in ratios.items()},
+    )
+
+
 @dataclass
 class TopicInfo:
     name: str
@@ -60,11 +100,7 @@ class DatasetInfo:
         del out["metadata"]
         simulation = self.metadata.get("rover.simulation", {}).get("yaml")
         if simulation:
-            sim = _metadata_yaml(self.path, "rover.simulation", simulation)
-            out["simulation"] = {k: sim.get(k) for k in ("scenario", "seed", "path_length_m", "nlos")}
-            out["simulation"]["direct_to_multipath_db"] = {
-                str(k): v for k, v in (sim.get("direct_to_multipath_db") or {}).items()
-            }
+            out["simulation"] = asdict(_simulation(self.path, simulation))
         return out
 
 
@@ -141,14 +177,11 @@ def render(info: DatasetInfo) -> str:
             lines.append(f"  channel {ch:>3}: {n:>8}{owner}")
     simulation = info.metadata.get("rover.simulation", {}).get("yaml")
     if simulation:
-        sim = _metadata_yaml(info.path, "rover.simulation", simulation)
-        lines.append(
-            f"Simulated: scenario {sim.get('scenario')}, seed {sim.get('seed')}, path {sim.get('path_length_m')} m"
-        )
+        sim = _simulation(info.path, simulation)
+        lines.append(f"Simulated: scenario {sim.scenario}, seed {sim.seed}, path {sim.path_length_m} m")
         lines.append("Direct-to-multipath power ratio of the tag-to-robot link (median over packets):")
-        nlos = sim.get("nlos", {})
-        for tag, ratio in (sim.get("direct_to_multipath_db") or {}).items():
-            lines.append(f"  tag {tag}: {ratio:+.1f} dB{'  (NLOS)' if nlos.get(tag) else ''}")
+        for tag, ratio in sim.direct_to_multipath_db.items():
+            lines.append(f"  tag {tag}: {ratio:+.1f} dB{'  (NLOS)' if sim.nlos.get(tag) else ''}")
     if info.setup:
         lines.append("Rig (rover.setup):")
         lines += [f"  {line}" for line in info.setup.strip().splitlines()]

@@ -18,7 +18,7 @@ from typing import Literal
 from rover.errors import BadInput, SpecError
 from rover.formats.bag import BagReader, shown
 from rover.formats.rig import load_rig
-from rover.messages import Raw, header, message_class
+from rover.messages import Raw, cdr_stamp_ns, header, message_class
 from rover.operator import Emit, Out, Source, Watermark
 from rover.pipeline.params import Checked, PositiveFloat
 
@@ -120,7 +120,12 @@ class DatasetReplay(Source):
                             return
                 port = self._channels[message.topic]
                 self._done += 1
-                yield Emit(port, Raw(self.outputs[port].type, message.data))
+                try:
+                    stamp = cdr_stamp_ns(message.data)
+                except ValueError:
+                    self.drop(f"messages on {message.topic} too short to carry a header")
+                    continue
+                yield Emit(port, Raw(self.outputs[port].type, message.data), stamp)
         if not self._done:
             wanted = ", ".join(self.params.topics.values())
             log.warning("%s: no messages on %s: the run's outputs are empty", self.path, wanted)

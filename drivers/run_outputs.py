@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from rover.errors import OutputFailed
+from rover.errors import BadInput, OutputFailed
 from rover.evaluation.figures import FIGURE_FILES, write_figures
 from rover.evaluation.metrics import Truth, evaluate, poses_of_messages
 from rover.formats.atomic_file import remove_outputs, write_aside
@@ -68,9 +68,9 @@ ESTIMATE_FILES = ("trajectory.tum", "trajectory_live.tum", "tags.csv")
 RUN_FILES = (*ESTIMATE_FILES, TIMING_FILE, METRICS_FILE, *FIGURE_FILES, RUN_FILE)
 """Everything this operator may write: what a new run removes first."""
 METRICS_MIN_S = 0.3
-"""After an interrupt, metrics are computed only with this much of the time budget left."""
-FIGURES_MIN_S = 1.5
-"""After an interrupt, figures are drawn only with this much left (matplotlib's start-up alone takes about 1 s)."""
+"""After an interrupt, metrics are computed only with this much of the time budget left (they take
+about 0.1 s: the truth is read before the run). Figures are never drawn after an interrupt:
+matplotlib's start-up alone takes about 1 s."""
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -122,6 +122,8 @@ class RunOutputs(Operator):
     def start(self) -> None:
         """Remove an earlier run's files; read the dataset's ground truth now, so that after an
         interrupt the metrics fit in the time budget."""
+        if self.out.exists() and not self.out.is_dir():
+            raise BadInput(f"{self.out}: not a folder (the output of a run is a folder)")
         remove_outputs(self.out / name for name in RUN_FILES)
         if self.params.dataset:
             self.truth = load_truth(Path(self.params.dataset))
@@ -182,16 +184,15 @@ class RunOutputs(Operator):
         """The estimates and timings; then metrics and figures, when there is truth and time."""
         if not outcome.keeps_outputs:
             return
-        try:
-            self.out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputFailed(f"{self.out}: cannot create the output folder: {exc.strerror or exc}") from None
+        self._make_folder()
         self._write("trajectory.tum", "".join(tum_line(m) for m in sorted(self.final, key=stamp_ns)))
         self._write("trajectory_live.tum", "".join(tum_line(m) for m in sorted(self.live, key=stamp_ns)))
         self._write("tags.csv", self.tags_csv())
         self._write(TIMING_FILE, json.dumps(self.timing_summary(), indent=2) + "\n")
         if self.truth is not None and self.final:
             self._evaluate(self.truth, outcome)
+        elif self.truth is not None:
+            self._note("no metrics: no epoch left the SLAM window (no final pose)")
 
     def report(self, outcome: RunOutcome) -> None:
         """run.json, whatever happened; a failed run's other files are removed."""
@@ -199,9 +200,17 @@ class RunOutputs(Operator):
             for path in self.written:
                 path.unlink(missing_ok=True)
             self.written = []
-        self.out.mkdir(parents=True, exist_ok=True)
+        if self.out.exists() and not self.out.is_dir():
+            return  # a file where the folder should be: the run failed saying so, nowhere to report
+        self._make_folder()
         dataset = str(Path(self.params.dataset).resolve()) if self.params.dataset else ""
         write_atomic(self.out / RUN_FILE, json.dumps(self.run_description(dataset, outcome), indent=2) + "\n")
+
+    def _make_folder(self) -> None:
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputFailed(f"{self.out}: cannot create the output folder: {exc.strerror or exc}") from None
 
     def _note(self, text: str) -> None:
         """Something the user should know about this run's files: logged, and kept in run.json."""
@@ -212,7 +221,7 @@ class RunOutputs(Operator):
         write_atomic(self.out / name, text)
         self.written.append(self.out / name)
 
-    def timing_summary(self) -> dict[str, dict[str, float]]:
+    def timing_summary(self) -> dict[str, dict[str, float | int]]:
         """Per timed stage: how many, and the median, 90th percentile, largest and total wall-clock seconds."""
         summary = {}
         for stage, values in sorted(self.timing.items()):
@@ -271,9 +280,17 @@ class RunOutputs(Operator):
             self.history,
             self.aoa,
         )
-        metrics = evaluate(run, truth)
+        try:
+            metrics = evaluate(run, truth)
+        except BadInput as exc:  # the estimate stands; only the comparison with this truth is impossible
+            self._note(f"no metrics: {exc}")
+            return
         self._write(METRICS_FILE, json.dumps(metrics, indent=2) + "\n")
-        if outcome.time_left_s() < FIGURES_MIN_S:
+        if outcome.status == "interrupted":
             self._note(f"figures skipped after the interrupt: run `rover eval {self.out} --figures`")
             return
-        self.written += write_figures(run, truth, self.out)
+        try:
+            self.written += write_figures(run, truth, self.out)
+        except OutputFailed:
+            remove_outputs(self.out / name for name in FIGURE_FILES)
+            raise

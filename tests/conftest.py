@@ -109,6 +109,15 @@ def wait_for_file(path: Path, proc: subprocess.Popen, min_bytes: int = 0, timeou
         time.sleep(0.002)
 
 
+def stop_while_writing(proc: subprocess.Popen, partial: Path, signum: int) -> tuple[int, str]:
+    """Send `signum` once the command's `partial` output file exists; (status, stderr) once it ended."""
+    wait_for_file(partial, proc)
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert "Traceback" not in stderr, stderr
+    return proc.returncode, stderr
+
+
 def read_bag(path: Path) -> list[tuple[str, int, bytes]]:
     """(topic, log time, payload) of every message of an MCAP file, in file order."""
     return [(m.topic, m.log_time_ns, m.data) for m in iter_messages(path, log_time_order=False)]

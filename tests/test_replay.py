@@ -127,3 +127,16 @@ def test_a_corrupt_chunk_ends_rover_run_with_status_2_and_one_line(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert proc.stderr.startswith(f"rover: error: {path}: not a readable MCAP dataset: corrupt "), proc.stderr
+
+
+def test_a_message_too_short_for_a_header_is_dropped_and_counted(tmp_path):
+    path = tmp_path / "d.mcap"
+    with BagWriter(path) as bag:
+        for i in range(5):
+            stamp = T0_NS + i * 10_000_000
+            payload = Raw("sensor_msgs/msg/Imu", b"\x00\x01\x00\x00\x07") if i == 2 else None
+            bag.write("/imu/data", payload or make("sensor_msgs/msg/Imu", header=header(stamp)), stamp)
+    replay = DatasetReplay(ReplayParams(path=str(path)))
+    items = list(replay.run(threading.Event()))
+    assert [i.stamp_ns for i in items if isinstance(i, Emit)] == [T0_NS + i * 10_000_000 for i in (0, 1, 3, 4)]
+    assert replay.drops == {"messages on /imu/data too short to carry a header": 1}

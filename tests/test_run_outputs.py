@@ -90,3 +90,18 @@ def test_an_interrupt_with_no_time_left_skips_the_metrics_with_a_note(tmp_path, 
     run = json.loads((tmp_path / "out" / "run.json").read_text())
     assert run["status"] == "interrupted" and "metrics.json" not in run["files"]
     assert run["notes"] == [f"metrics and figures skipped after the interrupt: run `rover eval {op.out} --figures`"]
+
+
+def test_metrics_that_cannot_be_computed_leave_the_run_complete_with_a_note(tmp_path, simulated):
+    """The estimate starts 1,000 s after the dataset's 180 s of truth ends (its stamps are made up
+    here): no metrics.json, a note saying why, and the estimates stay."""
+    op = RunOutputs(RunOutputsParams(out=str(tmp_path / "out"), dataset=str(simulated("paper", 1))))
+    op.start()
+    later = [pose(10_000 + i) for i in range(3)]
+    run_operator(op, {"trajectory": later, "pose": later, "tags": []})
+    op.close()
+    op.report(RunOutcome())
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert run["status"] == "complete" and "trajectory.tum" in run["files"] and "metrics.json" not in run["files"]
+    assert len(run["notes"]) == 1 and run["notes"][0].startswith("no metrics: ")
+    assert "do not overlap in time" in run["notes"][0]

@@ -231,6 +231,25 @@ operators:
     assert list((tmp_path / "out").iterdir()) == []
 
 
+def test_a_second_signal_changes_nothing(tmp_path):
+    """Ctrl-C, then SIGTERM while the outputs are being finished: still stopped by the first."""
+    pipeline = tmp_path / "live.yaml"
+    pipeline.write_text(LIVE)
+    port = free_port()
+    proc = popen_rover(
+        "run", str(pipeline), "--host", "robot", "--output", str(tmp_path / "out"), "--set", f"port={port}"
+    )
+    with client(port) as watcher:
+        _sub, flowing = data_event(watcher, "rover/live/pass/imu", 5)
+        assert wait_for(flowing, proc), proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signal.SIGTERM)
+    _out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert len(read_bag(tmp_path / "out" / "results.mcap")) >= 5
+
+
 def test_a_run_ends_by_itself_at_end_of_stream(tmp_path):
     pipeline = tmp_path / "live.yaml"
     pipeline.write_text(LIVE)

@@ -156,7 +156,7 @@ def test_50_mb_file_is_rejected_unread(tmp_path, capsys):
         f.write(PIPELINE.encode())
         f.truncate(50 * 2**20)
     line = check(path, capsys)
-    assert line == f"{path}: 52,428,800 bytes: larger than the 1 MiB a pipeline, setup or scenario file may be"
+    assert line == f"{path}: 52,428,800 bytes: larger than the 1 MiB a YAML input may be"
 
 
 def test_large_text_is_rejected(tmp_path):

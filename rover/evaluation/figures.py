@@ -92,10 +92,11 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
         if len(heard):
             ax.axvline((heard.min() - t0) / 1e9, color=line.get_color(), ls=":", lw=0.8)
             ax.axvline((heard.max() - t0) / 1e9, color=line.get_color(), ls="--", lw=0.8)
-    ax.set_yscale("log")
     ax.set_xlabel("time (s)  (dotted: first heard, dashed: last heard)")
     ax.set_ylabel("tag error (cm)")
-    ax.legend(fontsize=8)
+    if ax.lines:  # without a localized tag the plot is empty: no log scale, no legend to warn about
+        ax.set_yscale("log")
+        ax.legend(fontsize=8)
     written.append(_save(fig, out / "tag_error.png", plt))
 
     error, aoa_nlos, _std = aoa_errors(run, truth)
@@ -118,9 +119,9 @@ def _save(fig: Figure, path: Path, plt: Any) -> Path:
 
     def draw(partial: Path) -> None:
         fig.tight_layout()
-        fig.savefig(partial, dpi=110)
+        fig.savefig(partial, dpi=110, format="png")
 
     try:
-        return write_aside(path, draw, path.with_name(f".{path.stem}.partial.png"))
+        return write_aside(path, draw)
     finally:
         plt.close(fig)

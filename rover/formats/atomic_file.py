@@ -14,10 +14,10 @@ def partial_path(path: Path) -> Path:
     return path.with_name(f".{path.name}.partial")
 
 
-def write_aside(path: Path, write: Callable[[Path], object], partial: Path | None = None) -> Path:
-    """`write(partial)`, then rename the partial file to `path`; OutputFailed naming `path` when that
-    fails (nothing is left behind). `partial` defaults to `partial_path(path)`."""
-    partial = partial or partial_path(path)
+def write_aside(path: Path, write: Callable[[Path], object]) -> Path:
+    """`write(partial_path(path))`, then rename the partial file to `path`; OutputFailed naming `path`
+    when that fails (nothing is left behind)."""
+    partial = partial_path(path)
     try:
         write(partial)
         partial.replace(path)

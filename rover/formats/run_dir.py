@@ -6,23 +6,16 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 
 from rover.errors import BadInput
 from rover.evaluation.metrics import Poses2D, RunRecord, Truth
-from rover.formats.truth import (
-    Trajectory,
-    TruthTag,
-    csv_float,
-    csv_int,
-    csv_rows,
-    read_dataset_truth,
-    read_tags_csv,
-    read_text,
-    read_tum,
-)
+from rover.formats.text import csv_float, read_text, tag_rows
+from rover.formats.truth import Trajectory, TruthTag, read_dataset_truth, read_tags_csv, read_tum
 from rover.geometry import yaw_from_quaternion
+from rover.operator import RunStatus
 
 RUN_FILE = "run.json"
 """names the dataset a run read, so `rover eval` finds its truth"""
@@ -42,13 +35,7 @@ def _read_tags(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ids: list[int] = []
     xy: list[list[float]] = []
     cov: list[list[list[float]]] = []
-    first_line: dict[int, int] = {}
-    for number, row in csv_rows(read_text(path), str(path), RUN_TAG_COLUMNS):
-        where = f"{path}:{number}"
-        tag_id = csv_int(row, "id", where, 2**32)
-        if tag_id in first_line:
-            raise BadInput(f"{where}: tag id {tag_id} repeated (first on line {first_line[tag_id]})")
-        first_line[tag_id] = number
+    for where, tag_id, row in tag_rows(read_text(path), str(path), RUN_TAG_COLUMNS):
         x, y, var_x, cov_xy, var_y = (_optional_float(row, c, where) for c in RUN_TAG_COLUMNS[1:])
         if math.isnan(x) != math.isnan(y):
             raise BadInput(f"{where}: x and y are both numbers, or both empty for a tag never localized")
@@ -127,6 +114,10 @@ def load_run(run_dir: str | Path) -> RunRecord:
     return record(final, live, tags, history, aoa)
 
 
+RUN_STATUSES = ("", *get_args(RunStatus))
+"""The `status` values of run.json ("" for one written before runs had a status)."""
+
+
 @dataclass(frozen=True)
 class RunDescription:
     """What `rover eval` needs of a run's run.json."""
@@ -151,14 +142,15 @@ def read_run_description(run_dir: str | Path) -> RunDescription | None:
     for name in ("status", "reason"):
         if not isinstance(description.get(name, ""), str):
             raise BadInput(f"{path}: field {name}: a string, got {_json_type(description[name])}")
+    if description.get("status", "") not in RUN_STATUSES:
+        raise BadInput(f"{path}: field status: one of {', '.join(RUN_STATUSES[1:])}, got {description['status']!r}")
     dataset = description.get("dataset")
     if dataset is not None and not isinstance(dataset, str):
         raise BadInput(f"{path}: field dataset: a file path (a string), got {_json_type(dataset)}")
     if dataset is not None and "\x00" in dataset:
         raise BadInput(f"{path}: field dataset: not a file path (it holds a NUL character)")
-    return RunDescription(
-        Path(dataset) if dataset else None, description.get("status", ""), description.get("reason", "")
-    )
+    reason = " ".join(description.get("reason", "").split())  # one line, whatever the file holds
+    return RunDescription(Path(dataset) if dataset else None, description.get("status", ""), reason)
 
 
 def _json_type(value: object) -> str:

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
@@ -13,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from rover.errors import BadInput
+from rover.formats.text import csv_float, csv_int, excerpt, read_text, tag_rows
 
 TAG_COLUMNS = ("id", "channel", "x", "y", "z", "nlos")
 TUM_FIELDS = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
@@ -38,31 +36,6 @@ class TruthTag:
     nlos: bool
 
 
-def read_text(path: str | Path) -> str:
-    """A UTF-8 text file's content (a byte-order mark dropped); BadInput naming the file when it
-    cannot be read or holds bytes that are not text."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise BadInput(
-            f"{path}: not a text file (byte 0x{data[exc.start]:02x} at offset {exc.start} is not UTF-8)"
-        ) from None
-    if "\x00" in text:
-        raise BadInput(f"{path}: not a text file (NUL byte at offset {data.index(0)})")
-    return text
-
-
-def _excerpt(line: str, limit: int = 60) -> str:
-    """A line quoted for a one-line message: control characters escaped, long lines cut."""
-    text = line.strip()
-    return repr(text if len(text) <= limit else text[:limit] + "...")
-
-
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory (comments with #); BadInput names the file and line of a bad row.
 
@@ -78,16 +51,16 @@ def read_tum(path: str | Path) -> Trajectory:
         where = f"{path}:{number}"
         parts = text.replace(",", " ").split()
         if len(parts) != len(TUM_FIELDS):
-            raise BadInput(
-                f"{where}: a TUM row has 8 numbers (t x y z qx qy qz qw), got {len(parts)}: {_excerpt(line)}"
-            )
+            raise BadInput(f"{where}: a TUM row has 8 numbers (t x y z qx qy qz qw), got {len(parts)}: {excerpt(line)}")
         try:
             values = [float(v) for v in parts[1:]]
         except ValueError:
-            raise BadInput(f"{where}: not a TUM row (t x y z qx qy qz qw): {_excerpt(line)}") from None
+            raise BadInput(f"{where}: not a TUM row (t x y z qx qy qz qw): {excerpt(line)}") from None
         for name, value, word in zip(TUM_FIELDS[1:], values, parts[1:], strict=True):
             if not math.isfinite(value):
-                raise BadInput(f"{where}: {name} has a non-finite value {_excerpt(word, 20)}")
+                raise BadInput(f"{where}: {name} has a non-finite value {excerpt(word, 20)}")
+        if not any(values[3:]):
+            raise BadInput(f"{where}: the quaternion (qx qy qz qw) is zero, not a rotation")
         stamps.append(_seconds_to_ns(parts[0], where))
         rows.append(values)
     if not rows:
@@ -99,7 +72,7 @@ def read_tum(path: str | Path) -> Trajectory:
 def _seconds_to_ns(text: str, where: str) -> int:
     """Seconds as written (e.g. `1700000000.010000`, `1.7e9`) to integer nanoseconds, without float
     rounding; BadInput at `where` for a stamp that is not a number or not in [0, 2**31) s."""
-    quoted = _excerpt(text, 30)
+    quoted = excerpt(text, 30)
     try:
         seconds = Decimal(text)
     except InvalidOperation:
@@ -122,70 +95,11 @@ def parse_tags_csv(text: str, source: str) -> list[TruthTag]:
     """The tag truth CSV from text (as a dataset's `rover.truth` metadata carries it); BadInput names
     `source` and the line of a missing column or value, a bad number, a repeated id."""
     tags: list[TruthTag] = []
-    first_line: dict[int, int] = {}
-    for number, row in csv_rows(text, source, TAG_COLUMNS[:5], "id,channel,x,y,z[,nlos]"):
-        where = f"{source}:{number}"
-        tag_id = csv_int(row, "id", where, 2**32)
-        if tag_id in first_line:
-            raise BadInput(f"{where}: tag id {tag_id} repeated (first on line {first_line[tag_id]})")
-        first_line[tag_id] = number
+    for where, tag_id, row in tag_rows(text, source, TAG_COLUMNS[:5], "id,channel,x,y,z[,nlos]"):
         nlos = csv_int(row, "nlos", where, 2) if row.get("nlos", "").strip() else 0
         xyz = (csv_float(row, "x", where), csv_float(row, "y", where), csv_float(row, "z", where))
         tags.append(TruthTag(tag_id, csv_int(row, "channel", where, 2**16), xyz, bool(nlos)))
     return tags
-
-
-def csv_rows(
-    text: str, source: str, required: tuple[str, ...], expected: str = ""
-) -> Iterator[tuple[int, dict[str, str]]]:
-    """The rows of a CSV text with a header line, by column name, with their line numbers; BadInput
-    naming `source` for a missing column (`expected` says which are, by default `required`), a row
-    without a value for one, or text that is not CSV."""
-    reader = csv.reader(io.StringIO(text.removeprefix("\ufeff"), newline=""))
-    try:
-        header = [name.strip() for name in next(reader, [])]
-        missing = [c for c in required if c not in header]
-        if missing:
-            expected = expected or ",".join(required)
-            raise BadInput(f"{source}:1: missing column(s) {', '.join(missing)} (expected {expected})")
-        for fields in reader:
-            if not any(f.strip() for f in fields):
-                continue
-            if len(fields) < len(header) and (absent := [c for c in required if c not in header[: len(fields)]]):
-                raise BadInput(
-                    f"{source}:{reader.line_num}: {len(fields)} field(s), no value for column(s) {', '.join(absent)}"
-                )
-            yield reader.line_num, dict(zip(header, fields, strict=False))
-    except csv.Error as exc:
-        raise BadInput(f"{source}:{reader.line_num}: not CSV: {exc}") from None
-
-
-def csv_float(row: dict[str, str], column: str, where: str) -> float:
-    """A finite number from a CSV row; BadInput at `where` naming the column."""
-    text = row.get(column, "").strip()
-    try:
-        value = float(text)
-    except ValueError:
-        raise BadInput(f"{where}: column {column} is {_excerpt(text, 20) if text else 'empty'}, not a number") from None
-    if not math.isfinite(value):
-        raise BadInput(f"{where}: column {column} has a non-finite value {_excerpt(text, 20)}")
-    return value
-
-
-def csv_int(row: dict[str, str], column: str, where: str, limit: int) -> int:
-    """An integer in [0, limit) from a CSV row; BadInput at `where` naming the column."""
-    text = row.get(column, "").strip()
-    try:
-        value = int(text)
-    except ValueError:
-        raise BadInput(
-            f"{where}: column {column} is {_excerpt(text, 20) if text else 'empty'}, not an integer"
-        ) from None
-    if not 0 <= value < limit:
-        raise BadInput(
-            f"{where}: column {column} is {text if len(text) <= 20 else _excerpt(text, 20)}, outside 0..{limit - 1}"
-        )
-    return value
 
 
 def read_dataset_truth(path: str | Path) -> tuple[Trajectory | None, list[TruthTag]]:

@@ -19,7 +19,7 @@ Path = tuple[Any, ...]
 
 MAX_YAML_BYTES = 1_048_576
 """bytes (1 MiB) of one YAML text. The shipped pipeline is 2.7 kB, a scenario 3 kB, a setup file
-less; a 1,500-operator pipeline is about 100 kB. `read_document` refuses a larger file from its size."""
+less; a 1,500-operator pipeline is about 100 kB. `read_yaml_text` refuses a larger file from its size."""
 MAX_YAML_DEPTH = 64
 """open mappings and sequences around a value, after alias expansion. Real files nest at most 5
 deep (operators > NAME > params > topics > value). PyYAML's composer and Rover's own walks recurse
@@ -44,7 +44,7 @@ def _mib(size: int) -> str:
 def size_error(file: str, size: int | None) -> YamlLimitError:
     """The error for a text of `size` bytes (None: more than MAX_YAML_BYTES, exact size unknown)."""
     what = f"{size:,} bytes" if size is not None else f"more than {MAX_YAML_BYTES:,} bytes"
-    message = f"{what}: larger than the {_mib(MAX_YAML_BYTES)} a pipeline, setup or scenario file may be"
+    message = f"{what}: larger than the {_mib(MAX_YAML_BYTES)} a YAML input may be"
     return YamlLimitError([Diagnostic(file, 0, 0, message)])
 
 

@@ -17,13 +17,13 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import FrameType
 from typing import Any
 
 import zenoh
 
-from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError
+from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError, TransportError
 from rover.messages import ANY, Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, OperatorCounts, RunOutcome, Source, Watermark
 from rover.pipeline.validation import Node, Pipeline
@@ -41,7 +41,10 @@ DRAIN_S = 0.8
 """After an interrupt, how long operators may drain what is queued before the run is cut; the
 rest of the budget is for finishing the outputs."""
 JOIN_S = 0.3
-"""After the run is cut, how long all threads together may take to leave their handlers."""
+"""After an interrupt cut the run, how long all threads together may take to leave their handlers;
+an operator still in its handler then is not closed (its outputs are not finished)."""
+LEAVE_S = 10.0
+"""The same after a failure, where no time was promised."""
 POLL_S = 0.05
 _KNOWN = typestore.fielddefs
 READY_LOG_S = 5.0
@@ -282,6 +285,8 @@ class OperatorTask(Task):
                 continue
             self._accept(*item)
             for port, stamp, msg in merger.pop_ready():
+                if self.abort.is_set():
+                    return
                 self.publish(op.on_input(port, msg, stamp), stamp)
             self.advance(merger.safe_time() - op.lateness_s * 1e9)
         self.publish(op.on_end(), self.last_stamp())
@@ -290,6 +295,11 @@ class OperatorTask(Task):
         """The latest stamp sent on any output, for what `on_end` emits without one (0 before any)."""
         sent = [o.last_ns for o in self.outputs.values() if o.last_ns != -INF]
         return int(max(sent)) if sent else 0
+
+
+def _described(exc: Exception) -> str:
+    """An exception in one line: our own errors by their message, others with their type."""
+    return str(exc) if isinstance(exc, RoverError) else f"{type(exc).__name__}: {exc}"
 
 
 def _report_drops(task: Task) -> None:
@@ -367,9 +377,10 @@ class Runner:
         return SessionSpec(h.listen, h.connect, h.connect_timeout_s, self.host)
 
     def request_stop(self, signum: int) -> None:
+        """The first signal stops the run; later ones change nothing (the outputs are being finished)."""
         if self.stopped_at is None:
             self.stopped_at = time.monotonic()
-        self.interrupted = signum
+            self.interrupted = signum
         self.stop.set()
 
     def run(self) -> int:
@@ -393,22 +404,44 @@ class Runner:
         try:
             for node in self.nodes:
                 ops[node.name] = self._build(node)
-            began = True
-            self._start(ops)
             with open_session(self.session_spec()) as session:
+                if self.stop.is_set():  # stopped while starting: the earlier run's files stay as they were
+                    return self._close(ops, RunOutcome("interrupted", self._stop_reason()), began)
+                began = True
+                self._start(ops)
                 self._run(session, ops)
+        except TransportError as exc:
+            if not self.interrupted:
+                error = exc
         except RoverError as exc:
             error = exc
-        outcome = self._outcome(error)
-        failures = [f"operator {name!r}: {problem}" for name, problem in self._each(ops, "close", outcome)]
+        return self._close(ops, self._outcome(error), began, error)
+
+    def _close(
+        self, ops: dict[str, Operator], outcome: RunOutcome, began: bool, error: RoverError | None = None
+    ) -> int:
+        """Close every operator whose thread has left its handler, then (once the run began) tell each
+        the final outcome; raise the run's error, or return its exit status."""
+        alive = {t.name for t in self.tasks if t.thread.is_alive()}
+        for name in sorted(alive):
+            log.warning("operator %r is still in its handler: its outputs are not finished", name)
+        closing = {name: op for name, op in ops.items() if name not in alive}
+        # A run that never began writes nothing: its operators close as after a failure.
+        failures = self._each(closing, "close", outcome if began else replace(outcome, status="failed"))
+        for name, problem in failures if error is not None else ():
+            log.error("operator %r failed to close: %s", name, problem)
         if failures and error is None:
-            error = OutputFailed("; ".join(failures))
+            error = OutputFailed("; ".join(f"operator {name!r}: {problem}" for name, problem in failures))
             outcome = self._outcome(error)
-        for name, problem in self._each(ops, "report", outcome) if began else ():
-            log.error("operator %r could not report the run: %s", name, problem)
+        reported = self._each(closing, "report", outcome) if began else []
+        if reported and error is None:
+            error = OutputFailed("; ".join(f"operator {name!r}: {problem}" for name, problem in reported))
+        elif reported:
+            for name, problem in reported:
+                log.error("operator %r could not report the run: %s", name, problem)
         if error is not None:
             raise error
-        return 128 + self.interrupted if self.interrupted else 0
+        return 128 + self.interrupted if outcome.status == "interrupted" and self.interrupted else 0
 
     @staticmethod
     def _build(node: Node) -> Operator:
@@ -419,7 +452,7 @@ class Runner:
             raise
         except Exception as exc:  # noqa: BLE001 - a user's operator: reported like a failing handler
             raise OperatorFailed(
-                f"operator {node.name!r} ({node.spec.uses}) failed to start: {type(exc).__name__}: {exc}"
+                f"operator {node.name!r} ({node.spec.uses}) failed to start: {_described(exc)}"
             ) from exc
 
     @staticmethod
@@ -427,11 +460,13 @@ class Runner:
         """`start` every operator, even after one failed: each removes what an earlier run left, so
         a run that fails here leaves no stale result beside its run.json either."""
         failed: RoverError | None = None
-        for op in ops.values():
+        for name, op in ops.items():
             try:
                 op.start()
             except RoverError as exc:
                 failed = failed or exc
+            except Exception as exc:  # noqa: BLE001 - a user's operator: reported like a failing handler
+                failed = failed or OperatorFailed(f"operator {name!r} failed to start: {_described(exc)}")
         if failed is not None:
             raise failed
 
@@ -440,20 +475,22 @@ class Runner:
         if error is not None:
             return RunOutcome("failed", str(error), counts)
         if self.interrupted:
-            name = signal.Signals(self.interrupted).name
             deadline = (self.stopped_at or time.monotonic()) + STOP_BUDGET_S
-            return RunOutcome("interrupted", f"stopped by {name}", counts, deadline)
+            return RunOutcome("interrupted", self._stop_reason(), counts, deadline)
         return RunOutcome("complete", "", counts)
 
+    def _stop_reason(self) -> str:
+        return f"stopped by {signal.Signals(self.interrupted).name}" if self.interrupted else "stopped"
+
     @staticmethod
-    def _each(ops: dict[str, Operator], hook: str, outcome: RunOutcome) -> list[tuple[str, Exception]]:
+    def _each(ops: dict[str, Operator], hook: str, outcome: RunOutcome) -> list[tuple[str, str]]:
         """Call `close` or `report` on every operator; the ones that raised, with their errors."""
         failed = []
         for name, op in ops.items():
             try:
                 getattr(op, hook)(outcome)
             except Exception as exc:  # noqa: BLE001 - collected; the other operators still close
-                failed.append((name, exc))
+                failed.append((name, _described(exc)))
         return failed
 
     def _install_signals(self) -> dict[signal.Signals, _SignalHandler]:
@@ -476,7 +513,7 @@ class Runner:
                 self._start_and_wait()
         finally:
             self.abort.set()
-            joined_by = time.monotonic() + JOIN_S
+            joined_by = time.monotonic() + (JOIN_S if self.interrupted else LEAVE_S)
             for task in self.tasks:
                 if task.thread.ident is not None:
                     task.thread.join(timeout=max(0.0, joined_by - time.monotonic()))
