@@ -169,7 +169,12 @@ def stop_time(work: Path, dataset: Path) -> dict[str, float | int | bool]:
     status = proc.wait()
     took = time.monotonic() - sent
     run = json.loads((out / "run.json").read_text())
-    return {"status": status, "stop_s": took, "estimates_written": "trajectory.tum" in run["files"]}
+    return {
+        "status": status,
+        "stop_s": took,
+        "estimates_written": "trajectory.tum" in run["files"],
+        "metrics_written": "metrics.json" in run["files"],
+    }
 
 
 def identical_runs(work: Path, dataset: Path) -> bool:
@@ -200,7 +205,8 @@ def main() -> None:
         stop = stop_time(work, paper)
         print(
             f"SIGINT during a run with ground truth: status {stop['status']}, exit after {stop['stop_s']:.2f} s "
-            f"(goal < {STOP_GOAL_S:g} s), estimates written: {stop['estimates_written']}"
+            f"(goal < {STOP_GOAL_S:g} s), estimates written: {stop['estimates_written']}, "
+            f"metrics written: {stop['metrics_written']}"
         )
         same = identical_runs(work, dataset)
         print(f"two identical runs, results.mcap byte-identical: {same}")

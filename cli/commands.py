@@ -170,6 +170,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if not sep or not key:
             raise BadInput(f"--set {item!r}: expected SECTION.KEY=VALUE")
         overrides[key] = value
+    if Path(args.scenario).exists() and Path(args.scenario).resolve() == Path(args.output).resolve():
+        raise BadInput(f"{args.output}: is also the scenario file; simulating onto it would destroy it")
     scenario = load_scenario(args.scenario, overrides)
     report = simulate(scenario, args.seed, args.output, shlex.join(["rover", *sys.argv[1:]]), force=args.force)
     per_tag = ", ".join(f"tag {t}: {n:,}" for t, n in report.packets_per_tag.items())
@@ -340,16 +342,21 @@ def main(argv: list[str] | None = None) -> int:
             print(d, file=sys.stderr)
         return EXIT_BAD_INPUT
     except BadInput as exc:
-        print(f"rover: error: {exc}", file=sys.stderr)
+        print(f"rover: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except RoverError as exc:
-        print(f"rover: error: {exc}", file=sys.stderr)
+        print(f"rover: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:
         return 128 + signal.SIGINT
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def _one_line(exc: Exception) -> str:
+    """An error's message on one line, whatever a library put in it (a reason quoting a file's text)."""
+    return " ".join(str(exc).split())
 
 
 def _interrupt(signum: int, _frame: FrameType | None) -> None:

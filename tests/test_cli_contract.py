@@ -16,8 +16,11 @@ from pathlib import Path
 from conftest import write_imu_dataset
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from mcap.writer import CompressionType, Writer
 
 from rover.cli.commands import main
+from rover.formats.bag import BagReader
+from rover.messages import ros2_msgdef
 
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -31,9 +34,33 @@ def real_dataset() -> bytes:
         return write_imu_dataset(Path(folder) / "imu.mcap", 300).read_bytes()
 
 
+@functools.cache
+def uncompressed_dataset() -> bytes:
+    """The same messages in an MCAP without compression or CRCs, so that overwritten bytes reach
+    the messages themselves instead of failing a chunk's decompression."""
+    out = io.BytesIO()
+    writer = Writer(out, compression=CompressionType.NONE, enable_crcs=False)
+    writer.start(profile="ros2")
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "imu.mcap"
+        path.write_bytes(real_dataset())
+        channels: dict[str, int] = {}
+        with BagReader(path) as bag:
+            for m in bag.messages():
+                if m.topic not in channels:
+                    schema = writer.register_schema(m.schema, "ros2msg", ros2_msgdef(m.schema).encode())
+                    channels[m.topic] = writer.register_channel(m.topic, "cdr", schema)
+                writer.add_message(channels[m.topic], m.log_time_ns, m.data, m.log_time_ns)
+    writer.finish()
+    return out.getvalue()
+
+
 def mutated() -> st.SearchStrategy[bytes]:
-    """The real dataset cut short, or with a few bytes overwritten."""
-    data = real_dataset()
+    """A real dataset (zstd chunks with CRCs, or plain) cut short, or with a few bytes overwritten."""
+    return st.one_of(_mutated(real_dataset()), _mutated(uncompressed_dataset()))
+
+
+def _mutated(data: bytes) -> st.SearchStrategy[bytes]:
     cut = st.integers(0, len(data)).map(lambda n: data[:n])
     flips = st.lists(st.tuples(st.integers(0, len(data) - 1), st.integers(0, 255)), min_size=1, max_size=8)
     return st.one_of(cut, flips.map(lambda fs: _flip(data, fs)))

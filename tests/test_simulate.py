@@ -180,3 +180,15 @@ def test_a_signal_while_writing_leaves_no_partial(tmp_path, signum, status):
     proc = popen_rover("simulate", *QUICK, "-o", str(tmp_path / "x.mcap"))
     assert stop_while_writing(proc, tmp_path / ".x.mcap.partial", signum)[0] == status
     assert list(tmp_path.iterdir()) == []
+
+
+def test_simulating_onto_the_scenario_file_is_refused(tmp_path, capsys):
+    from rover.cli.commands import main
+
+    scenario = tmp_path / "room.yaml"
+    scenario.write_text("room: {size_m: [6.0, 4.0]}\n")
+    assert main(["simulate", "--scenario", str(scenario), "-o", str(scenario), "--force"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"rover: error: {scenario}: is also the scenario file; simulating onto it would destroy it"
+    ]
+    assert scenario.read_text() == "room: {size_m: [6.0, 4.0]}\n"
