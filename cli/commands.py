@@ -163,6 +163,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     from rover.datasets.scenario import load_scenario
     from rover.datasets.simulate import simulate
+    from rover.formats.bag import check_output
 
     overrides = {}
     for item in args.set or []:
@@ -170,6 +171,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if not sep or not key:
             raise BadInput(f"--set {item!r}: expected SECTION.KEY=VALUE")
         overrides[key] = value
+    check_output(args.output, force=args.force)  # before the scenario is read or anything simulated
     if Path(args.scenario).exists() and Path(args.scenario).resolve() == Path(args.output).resolve():
         raise BadInput(f"{args.output}: is also the scenario file; simulating onto it would destroy it")
     scenario = load_scenario(args.scenario, overrides)
