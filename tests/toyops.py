@@ -52,8 +52,8 @@ class Passthrough(Operator):
         yield Emit("imu", msg)
 
 
-class Thin(Operator):
-    """Passes every other message on; the others it drops, for the runtime to report."""
+class _Counting(Operator):
+    """An IMU pass-through that counts the messages it has been given."""
 
     inputs = {"imu": In("sensor_msgs/msg/Imu")}
     outputs = {"imu": Out("sensor_msgs/msg/Imu")}
@@ -61,6 +61,10 @@ class Thin(Operator):
     def __init__(self, params=None):
         super().__init__(params)
         self.n = 0
+
+
+class Thin(_Counting):
+    """Passes every other message on; the others it drops, for the runtime to report."""
 
     def on_input(self, port, msg, stamp_ns):
         self.n += 1
@@ -70,15 +74,8 @@ class Thin(Operator):
             self.drop("messages of even rank")
 
 
-class Explode(Operator):
+class Explode(_Counting):
     """Raises on its third message: a buggy user operator."""
-
-    inputs = {"imu": In("sensor_msgs/msg/Imu")}
-    outputs = {"imu": Out("sensor_msgs/msg/Imu")}
-
-    def __init__(self, params=None):
-        super().__init__(params)
-        self.n = 0
 
     def on_input(self, port, msg, stamp_ns):
         self.n += 1
