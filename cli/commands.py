@@ -12,12 +12,16 @@ import threading
 from importlib import resources
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rover import __version__
 from rover.cli.registry import BUILTINS
 from rover.errors import BadInput, Interrupted, RoverError, SpecError
 from rover.pipeline.yamlpos import parse_scalar
+
+if TYPE_CHECKING:
+    from rover.formats.rig import Rig
+    from rover.operators.aoa.calibration import Calibration
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
@@ -59,19 +63,29 @@ def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
         and "operators" not in doc.data
         and ({"receiver", "tags", "excitation"} & set(doc.data))
     ):
+        from rover.operators.aoa.array import check_rig_geometry
+
         rig = parse_rig(doc)
         warnings = [f"{d} (warning)" for d in rig.warnings]
+        geometry = check_rig_geometry(rig)  # BadInput for an ambiguous planar array, as aoa raises at run time
+        if geometry:
+            warnings.append(f"{file}: warning: {geometry}")
+        head = f"{file}: ok: rig with {len(rig.antenna_positions_m)} antennas"
+        tags = ", ".join(f"{t.id}@{t.channel}" for t in rig.tags)
+        if rig.excitation_channel is None:
+            listens = f" on channel {rig.receiver_channel}" if rig.receiver_channel is not None else ""
+            listed = f", {len(rig.tags)} tags ({tags})" if rig.tags else ""
+            return f"{head}{listens}, no excitation channel (a bare receiver){listed}", warnings
         warnings += [
             f"{file}: warning: channel plan: {c.message}"
             for c in conflicts(rig.excitation_channel, {t.id: t.channel for t in rig.tags})
         ]
-        tags = ", ".join(f"{t.id}@{t.channel}" for t in rig.tags)
         best = best_excitation()
         here = len(max_tags(rig.excitation_channel))
         advice = "" if here >= best.max_tags else f"; channel {best.channel} would allow {best.max_tags}"
         return (
-            f"{file}: ok: rig with {len(rig.antenna_positions_m)} antennas, excitation channel "
-            f"{rig.excitation_channel} (at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"
+            f"{head}, excitation channel {rig.excitation_channel} "
+            f"(at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"
         ), warnings
     spec, problems = parse(doc, overrides)
     return check(spec, BUILTINS, problems).summary(), []
@@ -217,6 +231,167 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Per-chain phase offsets from CSI logs at a known angle or datasets with ground truth."""
+    import shlex
+
+    from rover.formats.atomic_file import write_aside
+    from rover.formats.bag import MAGIC, check_output
+    from rover.operators.aoa.calibration import render, setup_block
+
+    out = check_output(args.out, force=args.force) if args.out else None  # before any work
+    kinds = []
+    for source in map(Path, args.sources):
+        if not source.is_file():
+            raise BadInput(f"{source}: {'is a directory' if source.is_dir() else 'no such file'}")
+        if out is not None and source.resolve() == out.resolve():
+            raise BadInput(f"{out}: is also an input; writing the calibration onto it would destroy it")
+        with source.open("rb") as f:
+            kinds.append("dataset" if f.read(len(MAGIC)) == MAGIC else "log")
+    logs = [s for s, kind in zip(args.sources, kinds, strict=True) if kind == "log"]
+    angles = _per_log(args.angle_deg, logs, "--angle-deg")
+    channels = _per_log(args.channel, logs, "--channel")
+    rig = None
+    if args.setup:
+        from rover.formats.rig import load_rig
+
+        rig = load_rig(args.setup)
+    rows, k = [], 0
+    for source, kind in zip(args.sources, kinds, strict=True):
+        if kind == "dataset":
+            rows += _calibrate_dataset(Path(source), rig)
+        else:
+            rows.append(
+                _calibrate_log(Path(source), rig, angles[k] if angles else None, channels[k] if channels else None)
+            )
+            k += 1
+    sys.stdout.write(render(rows))
+    block = setup_block([c for _, c in rows])
+    print()
+    sys.stdout.write(block)
+    if out is not None:
+        write_aside(
+            out, lambda partial: partial.write_text(f"# {shlex.join(['rover', 'calibrate', *args.sources])}\n{block}")
+        )
+        print(f"wrote {out}")
+    return 0
+
+
+def _per_log(values: list[Any] | None, logs: list[str], option: str) -> list[Any]:
+    """One value of an option per CSI log: given once for all of them, or once per log in order."""
+    if not values:
+        return []
+    if not logs:
+        raise BadInput(
+            f"{option} is for CSI logs; a dataset's angles and channels come from its frames and ground truth"
+        )
+    if len(values) not in (1, len(logs)):
+        raise BadInput(f"{option} given {len(values)} times for {len(logs)} CSI logs: give it once, or once per log")
+    return list(values) * len(logs) if len(values) == 1 else list(values)
+
+
+def _calibrate_log(
+    path: Path, rig: Rig | None, angle_deg: float | None, channel: int | None
+) -> tuple[str, Calibration]:
+    """One CSI Tool log of a transmitter at a known angle."""
+    from rover.formats.intel5300 import read_dat
+    from rover.operators.aoa.calibration import estimate_offsets
+
+    if rig is None:
+        raise BadInput(f"{path}: a CSI log needs --setup RIG.yaml (the antenna positions)")
+    if angle_deg is None:
+        raise BadInput(f"{path}: a CSI log needs --angle-deg A, the transmitter's angle in the robot frame")
+    channel = channel if channel is not None else rig.receiver_channel
+    if channel is None:
+        raise BadInput(f"{path}: give --channel N, the channel the log was recorded on (or receiver.channel)")
+    try:
+        records = read_dat(path)
+    except OSError as exc:
+        raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
+    m = len(rig.antenna_positions_m)
+    usable = records.nrx == m
+    if not usable.any():
+        raise BadInput(f"{path}: no beamforming record with {m} receive chains ({len(records)} records)")
+    try:
+        calibration = estimate_offsets(
+            records.csi[usable, :, :m, 0], rig.antenna_positions_m, channel, math.radians(angle_deg)
+        )
+    except BadInput as exc:
+        raise BadInput(f"{path}: {exc}") from None
+    return path.name, calibration
+
+
+def _calibrate_dataset(path: Path, rig: Rig | None) -> list[tuple[str, Calibration]]:
+    """A dataset's /csi frames with the true angle of each (/groundtruth/aoa, matched by stamp), per channel."""
+    import numpy as np
+
+    from rover.errors import SpecError
+    from rover.formats.bag import BagReader
+    from rover.formats.intel5300 import decode_bfee
+    from rover.formats.rig import rig_from_text
+    from rover.messages import stamp_ns
+    from rover.operators.aoa.calibration import estimate_offsets
+
+    frames: list[tuple[int, int, bytes]] = []
+    truth: dict[int, list[tuple[int, float]]] = {}
+    with BagReader(path, "not a readable MCAP dataset") as bag:
+        setup = bag.metadata().get("rover.setup", {}).get("yaml")
+        for message in bag.messages(["/csi", "/groundtruth/aoa"]):
+            if message.topic == "/csi":
+                frame = bag.decode(message, "rover_msgs/msg/CsiFrame")
+                frames.append((stamp_ns(frame), int(frame.channel), bytes(frame.bfee)))
+            else:
+                aoa = bag.decode(message, "rover_msgs/msg/Aoa")
+                truth.setdefault(stamp_ns(aoa), []).append((int(aoa.channel), float(aoa.angle_rad)))
+    if not truth:
+        raise BadInput(f"{path}: no ground-truth angles (/groundtruth/aoa); a CSI log with --angle-deg instead?")
+    if not frames:
+        raise BadInput(f"{path}: no CSI frames (/csi)")
+    if rig is None:
+        if setup is None:
+            raise BadInput(f"{path}: no rig description (rover.setup metadata): pass --setup RIG.yaml")
+        try:
+            rig = rig_from_text(setup, f"{path} (rover.setup)")
+        except SpecError as exc:
+            raise BadInput(str(exc.diagnostics[0])) from None
+    index, channel_of, angle_of = [], [], []
+    for k, (stamp, channel, _) in enumerate(frames):
+        match = [(c, a) for c, a in truth.get(stamp, []) if channel in (0, c)]
+        if len(match) == 1 and (channel or match[0][0]):
+            index.append(k)
+            channel_of.append(channel or match[0][0])
+            angle_of.append(match[0][1])
+    if not index:
+        raise BadInput(f"{path}: no /csi frame has a /groundtruth/aoa angle with its stamp and channel")
+    records = decode_bfee([frames[k][2] for k in index])
+    m = len(rig.antenna_positions_m)
+    rows = records.offset[records.nrx == m]
+    channels, angles = np.array(channel_of)[rows], np.array(angle_of)[rows]
+    csi = records.csi[records.nrx == m, :, :m, 0]
+    if not len(rows):
+        raise BadInput(f"{path}: no CSI frame with {m} receive chains and a ground-truth angle")
+    out = []
+    for channel in np.unique(channels):
+        mine = channels == channel
+        try:
+            calibration = estimate_offsets(csi[mine], rig.antenna_positions_m, int(channel), angles[mine])
+        except BadInput as exc:
+            raise BadInput(f"{path}: {exc}") from None
+        out.append((path.name, calibration))
+    return out
+
+
+def _degrees(text: str) -> float:
+    """--angle-deg: a finite number of degrees."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"a number of degrees, got {text!r}")
+    return value
+
+
 def _add_set(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--set",
@@ -318,6 +493,19 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print metrics.json instead of the table")
     p.add_argument("--figures", action="store_true", help="also draw the figures into the run's folder")
     p.set_defaults(func=cmd_eval)
+
+    p = command("calibrate", help="per-chain phase offsets from CSI at a known angle, as a setup.yaml block")
+    p.add_argument(
+        "sources", nargs="+", metavar="INPUT", help="CSI Tool logs (.dat) or datasets with ground truth (.mcap)"
+    )
+    p.add_argument("--setup", help="rig file with the antenna positions (default for a dataset: its own)")
+    p.add_argument(
+        "--angle-deg", type=_degrees, action="append", help="a log's transmitter angle, robot frame (once, or per log)"
+    )
+    p.add_argument("--channel", type=int, action="append", help="the channel a log was recorded on (once, or per log)")
+    p.add_argument("--out", help="also write the receiver.phase_offsets_rad block to this YAML file")
+    p.add_argument("--force", action="store_true", help="replace an existing --out file")
+    p.set_defaults(func=cmd_calibrate)
 
     p = command("info", help="what a dataset holds, like `ros2 bag info`")
     p.add_argument("path")

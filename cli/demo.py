@@ -8,9 +8,11 @@ tag errors beside the paper's figures, and the files it wrote.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +29,17 @@ def cache_dir() -> Path:
     return Path(os.environ.get("ROVER_CACHE", Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "rover"))
 
 
+def simulator_version() -> str:
+    """A digest of the paper scenario and the simulator's code: a cached dataset is remade when either changes."""
+    digest = hashlib.sha256()
+    package = resources.files("rover.datasets")
+    for name in ("scenarios/paper.yaml", "simulate.py", "radio.py", "motion.py", "imu_model.py", "scenario.py"):
+        digest.update(package.joinpath(name).read_bytes())
+    return digest.hexdigest()[:12]
+
+
 def cached_dataset(seed: int, console: Console) -> Path:
-    path = cache_dir() / f"paper-seed{seed}.mcap"
+    path = cache_dir() / f"paper-seed{seed}-{simulator_version()}.mcap"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         console.print(f"[bold]rover simulate --scenario paper --seed {seed}[/] (once; cached at {path})")

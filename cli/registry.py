@@ -12,6 +12,7 @@ BUILTINS: dict[str, str] = {
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
     "csi_file": "rover.drivers.csi_file:CsiFile",
+    "rig_source": "rover.drivers.rig_source:RigSource",
     "recorder": "rover.drivers.recorder:Recorder",
     "run_outputs": "rover.drivers.run_outputs:RunOutputs",
 }

@@ -104,13 +104,15 @@ class Impairments:
     snr_db: np.ndarray
     peak: np.ndarray
     chain_offsets_rad: np.ndarray
+    """(M,) for all packets, or (N, M) per packet (phase jumps)"""
 
 
 def impair(csi: np.ndarray, imp: Impairments, rng: np.random.Generator) -> np.ndarray:
     """Apply the receiver's effects and quantize to int8-valued complex CSI (N, 30, M)."""
     offsets = subcarrier_offsets_hz()
     phase = -2 * np.pi * offsets[None, :] * imp.sampling_offset_s[:, None] + imp.common_phase[:, None]
-    out = csi * np.exp(1j * phase)[:, :, None] * np.exp(1j * imp.chain_offsets_rad)[None, None, :]
+    chains = np.exp(1j * np.asarray(imp.chain_offsets_rad))
+    out = csi * np.exp(1j * phase)[:, :, None] * (chains[:, None, :] if chains.ndim == 2 else chains[None, None, :])
     power = np.mean(np.abs(out) ** 2, axis=(1, 2))
     sigma = np.sqrt(power / 10 ** (imp.snr_db / 10) / 2)
     out = out + sigma[:, None, None] * (rng.standard_normal(out.shape) + 1j * rng.standard_normal(out.shape))

@@ -52,6 +52,15 @@ class Receiver:
     sampling_offset_ns: tuple[float, float] = (0.0, 100.0)
     nlos_attenuation_db: tuple[float, float] = (10.0, 15.0)
     agc_peak: tuple[float, float] = (40.0, 90.0)
+    jumps_per_run: bool = False
+    """each chain's phase comes back shifted by a random multiple of the jump step (pi at 5 GHz,
+    pi/2 at 2.4 GHz) from the calibration, drawn once per channel for the run: a card restarted
+    since it was calibrated (CSI Tool issues #113 and #446; the LGTM repeats in the test data)"""
+    jumps_per_retune: Fraction = 0.0
+    """chance that a retune draws each chain's multiple afresh (not settled by the evidence)"""
+    jumps_per_packet: Fraction = 0.0
+    """chance that a packet's chains jump by a random multiple for that packet only (2.4 GHz, CSI
+    Tool issue #6)"""
 
 
 @dataclass(frozen=True)

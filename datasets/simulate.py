@@ -17,11 +17,11 @@ import rover
 from rover.datasets.imu_model import imu_samples, odometry_samples
 from rover.datasets.motion import Motion
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
-from rover.datasets.scenario import Scenario
+from rover.datasets.scenario import Receiver, Scenario
 from rover.errors import BadInput
 from rover.formats.bag import BagWriter, check_output
 from rover.formats.intel5300 import RecordHeader, encode_record
-from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, phase_jump_step_rad
 from rover.geometry import quaternion_from_yaw, wrap_angle
 from rover.messages import header, make
 
@@ -33,6 +33,10 @@ NOISE_FLOOR_DB = -92
 RATE_N_FLAGS = 0x4101
 PERMUTATIONS = (0b100100, 0b011000, 0b001001, 0b010010, 0b000110, 0b100001)
 """antenna_sel values of the six permutations; the NIC usually reports the identity."""
+JUMP_STREAM = 14
+"""the phase jumps draw from their own random stream, so turning them on changes nothing else"""
+JUMP_DRAWS = 4
+"""jumps are drawn as 0..3 steps: at 5 GHz (step pi) that is 0 or pi, each equally likely"""
 
 
 @dataclass
@@ -86,6 +90,37 @@ def _setup_yaml(scenario: Scenario, antennas: np.ndarray, offsets: np.ndarray) -
     )
 
 
+@dataclass(frozen=True)
+class ChainJumps:
+    """The simulated chains' phase jumps: per packet, the phase (N, M) added to the calibrated
+    offsets; per channel, the multiples of its jump step drawn for the run; how many retunes drew afresh."""
+
+    phase_rad: np.ndarray
+    run_steps: dict[int, list[int]]
+    retunes_redrawn: int
+
+
+def chain_jumps(rx: Receiver, seed: int, window: np.ndarray, window_channel: np.ndarray, chains: int) -> ChainJumps:
+    """Phase jumps of each packet (window: its sweep window; window_channel: each window's channel)."""
+    rng = np.random.default_rng([seed, JUMP_STREAM])
+    channels = sorted({int(c) for c in window_channel})
+    run = {c: rng.integers(0, JUMP_DRAWS, chains) * rx.jumps_per_run for c in channels}
+    redraw = rng.uniform(size=len(window_channel)) < rx.jumps_per_retune
+    fresh = rng.integers(0, JUMP_DRAWS, (len(window_channel), chains))
+    per_packet = rng.uniform(size=len(window)) < rx.jumps_per_packet
+    extra = rng.integers(0, JUMP_DRAWS, (len(window), chains)) * per_packet[:, None]
+    state = np.array([run[int(c)] for c in window_channel]).reshape(len(window_channel), chains)
+    state = np.where(redraw[:, None], fresh, state)
+    steps = np.array([phase_jump_step_rad(int(c)) for c in channels])
+    step = steps[np.searchsorted(channels, window_channel[window])] if len(window) else np.zeros(0)
+    levels = {c: round(2 * math.pi / s) for c, s in zip(channels, steps, strict=True)}
+    return ChainJumps(
+        (state[window] + extra) * step[:, None],
+        {c: [int(v) % levels[c] for v in run[c]] for c in channels},
+        int(redraw.sum()),
+    )
+
+
 class _World:
     """The room frame to the world frame: origin at the robot's first pose, x along its heading."""
 
@@ -135,6 +170,7 @@ def simulate(
     true_t = np.repeat(starts, n_packets) + rng.uniform(0, 1, n_packets.sum()) * np.repeat(ends - starts, n_packets)
     order = np.argsort(true_t, kind="stable")
     true_t, owner = true_t[order], owner[order]
+    window = np.repeat(np.arange(len(starts)), n_packets)[order]
     state = motion.state(true_t)
     ap = np.array(scenario.access_point.position_m, dtype=np.float64)
     room = (scenario.room.size_m[0], scenario.room.size_m[1])
@@ -166,12 +202,14 @@ def simulate(
         report.direct_to_multipath_db[tag.id] = round(float(np.median(ratio)), 2)
     keep = np.flatnonzero(heard)
     n = len(keep)
+    window_channel = np.array([scenario.tags[i].channel for i in window_tags])
+    jumps = chain_jumps(rx, seed, window[keep], window_channel, len(antennas))
     imp = Impairments(
         rng.uniform(*rx.sampling_offset_ns, n) * 1e-9,
         rng.uniform(0, 2 * np.pi, n),
         rng.uniform(*rx.snr_db, n),
         rng.uniform(*rx.agc_peak, n),
-        true_offsets,
+        true_offsets[None, :] + jumps.phase_rad,
     )
     quantized = impair(csi[keep], imp, rng)
     latency_s = (rx.latency_ms[0] + rng.exponential(rx.latency_ms[1], n)) * 1e-3
@@ -299,6 +337,13 @@ def simulate(
         "direct_to_multipath_db": report.direct_to_multipath_db,
         "nlos": {t.id: t.nlos for t in scenario.tags},
         "true_phase_offsets_rad": [float(v) for v in true_offsets],
+        "phase_jumps": {
+            "per_run": rx.jumps_per_run,
+            "per_retune": rx.jumps_per_retune,
+            "per_packet": rx.jumps_per_packet,
+            "run_steps": jumps.run_steps,
+            "retunes_redrawn": jumps.retunes_redrawn,
+        },
     }
     metadata = {
         "rover.setup": {"yaml": _setup_yaml(scenario, antennas, calibration)},

@@ -101,7 +101,11 @@ class RunOutputs(Operator):
         "trajectory": In("geometry_msgs/msg/PoseStamped", doc="final poses (slam/trajectory)"),
         "pose": In("geometry_msgs/msg/PoseStamped", doc="live poses (slam/pose)"),
         "tags": In("rover_msgs/msg/TagArray"),
-        "aoa": In("rover_msgs/msg/Aoa", required=False, doc="for when each tag was heard"),
+        "aoa": In(
+            "rover_msgs/msg/Aoa",
+            required=False,
+            doc="for when each tag was heard, and the AoA metrics: the SLAM's bearings (those with a chosen candidate)",
+        ),
         "timing": In("rover_msgs/msg/Timing", required=False, doc="wall-clock timings, summarised in timing.json"),
     }
     Params = RunOutputsParams
@@ -118,6 +122,7 @@ class RunOutputs(Operator):
         self.notes: list[str] = []
         self.out = Path(self.params.out)
         self.truth: Truth | None = None
+        self.unresolved = 0
 
     def start(self) -> None:
         """Remove an earlier run's files; read the dataset's ground truth now, so that after an
@@ -143,7 +148,10 @@ class RunOutputs(Operator):
             s = stamp_ns(msg)
             record.first_heard = s if record.first_heard is None else min(record.first_heard, s)
             record.last_heard = s if record.last_heard is None else max(record.last_heard, s)
-            self.aoa.append((s, msg.tag_id, msg.angle_rad, msg.std_rad))
+            if msg.chosen >= 0:
+                self.aoa.append((s, msg.tag_id, msg.angle_rad, msg.std_rad))
+            else:
+                self.unresolved += 1
         else:
             for tag in msg.tags:
                 self.history.append((stamp_ns(msg), tag.id, tag.position.x, tag.position.y, tag.observable))
@@ -189,6 +197,11 @@ class RunOutputs(Operator):
         self._write("trajectory_live.tum", "".join(tum_line(m) for m in sorted(self.live, key=stamp_ns)))
         self._write("tags.csv", self.tags_csv())
         self._write(TIMING_FILE, json.dumps(self.timing_summary(), indent=2) + "\n")
+        if self.unresolved:
+            self.notes.append(
+                f"{self.unresolved} AoA(s) left the SLAM window before their tag was found: no candidate was "
+                "chosen for them, and the AoA metrics leave them out"
+            )
         if self.truth is not None and self.final:
             self._evaluate(self.truth, outcome)
         elif self.truth is not None:

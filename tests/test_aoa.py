@@ -167,14 +167,15 @@ def run_frames(rig, frames) -> list:
     return [e.msg for e in run_operator(Aoa(), {"setup": [setup], "csi": packets})]
 
 
+def true_angles(out: list, truth: dict[int, float]) -> np.ndarray:
+    """The true angle at (the first truth stamp at or after) each estimate's stamp."""
+    stamps = np.array(sorted(truth))
+    return np.array([truth[stamps[min(int(np.searchsorted(stamps, stamp_ns(a))), len(stamps) - 1)]] for a in out])
+
+
 def errors_against(out: list, truth: dict[int, float]) -> tuple[np.ndarray, np.ndarray]:
     """Each estimate's error (deg) against the truth nearest its stamp, and the error over the reported std."""
-    stamps = np.array(sorted(truth))
-    found: list[float] = []
-    for aoa in out:
-        nearest = stamps[min(int(np.searchsorted(stamps, stamp_ns(aoa))), len(stamps) - 1)]
-        found.append(angle_error_deg(aoa.angle_rad, truth[nearest]))
-    errors = np.array(found)
+    errors = np.array([angle_error_deg(a.angle_rad, t) for a, t in zip(out, true_angles(out, truth), strict=True)])
     return errors, np.radians(errors) / np.array([aoa.std_rad for aoa in out])
 
 
@@ -196,10 +197,9 @@ def test_the_independent_recording_within_10_degrees_with_an_honest_std():
     assert 0.3 <= np.median(z) <= 1.2 and np.mean(z < 3) >= 0.95, (np.median(z), np.mean(z < 3))
 
 
-def test_the_simulated_paper_room(simulated):
-    """LOS and NLOS accuracy with margin over the benchmark's figures, and the std's spread: for a
-    Gaussian the median of |error| / std is 0.67 and 99.7% are below 3; multipath makes a tail."""
-    path = simulated("paper", 1)
+def paper_bursts(simulated, *overrides: str):
+    """The aoa operator's output on a simulated paper run, the true angles and which bursts are NLOS."""
+    path = simulated("paper", 1, *overrides)
     from rover.formats.bag import read_metadata
 
     rig = rig_from_text(read_metadata(path)["rover.setup"]["yaml"])
@@ -214,10 +214,34 @@ def test_the_simulated_paper_room(simulated):
     assert dataset_truth is not None
     nlos_tags = {i for i, (_xy, nlos) in dataset_truth.tags.items() if nlos}
     out = run_frames(rig, frames)
+    return out, truth, np.array([aoa.tag_id in nlos_tags for aoa in out])
+
+
+def test_the_simulated_paper_room(simulated):
+    """LOS and NLOS accuracy with margin over the benchmark's figures, and the std's spread: for a
+    Gaussian the median of |error| / std is 0.67 and 99.7% are below 3; multipath makes a tail.
+    The chains hold their calibration here (no phase jumps), so the no-jump angle is the estimate."""
+    out, truth, nlos = paper_bursts(simulated, "receiver.jumps_per_run=false")
     errors, z = errors_against(out, truth)
-    nlos = np.array([aoa.tag_id in nlos_tags for aoa in out])
     assert np.median(errors[~nlos]) <= 6.0 and np.median(errors[nlos]) <= 16.0
     assert 0.4 <= np.median(z) <= 1.0 and np.mean(z < 3) >= 0.9, (np.median(z), np.mean(z < 3))
+
+
+def test_phase_jumps_leave_the_true_angle_among_the_candidates(simulated):
+    """With every channel's chains off their calibration by random multiples of pi, the no-jump
+    angle is mostly wrong, but the candidates hold the estimate the unjumped card would have given
+    (the jumps are exact), and so the true angle as often as that estimate does."""
+    plain, truth, nlos = paper_bursts(simulated, "receiver.jumps_per_run=false")
+    jumped, _, _ = paper_bursts(simulated)
+    assert len(plain) == len(jumped)
+    plain_error = errors_against(plain, truth)[0]
+    assert np.median(errors_against(jumped, truth)[0][~nlos]) > 30.0  # what a single angle would suffer
+    nearest_true = []
+    for j, true in zip(jumped, true_angles(plain, truth), strict=True):
+        candidates = np.asarray(j.candidate_angles_rad)
+        assert j.angle_rad == candidates[0] and len(candidates) == len(j.candidate_powers) >= 1
+        nearest_true.append(np.degrees(np.abs(wrap_angle(candidates - true))).min())
+    assert np.mean(np.array(nearest_true) < 10) >= np.mean(plain_error < 10) - 0.005
 
 
 def test_a_strong_mirror_is_reported_unless_resolved_as_a_later_path():

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from conftest import popen_rover, read_bag, reference_data, run_rover, wait_for_file
 
+from rover.cli.demo import simulator_version
 from rover.drivers.run_outputs import TAG_COLUMNS
 from rover.formats.bag import BagReader, BagWriter, read_metadata
 from rover.geometry import wrap_angle
@@ -26,7 +27,7 @@ def test_the_demo_beats_the_papers_figures(tmp_path, simulated):
     dataset = simulated("paper", 1)
     cache = tmp_path / "cache"
     cache.mkdir()
-    os.link(dataset, cache / "paper-seed1.mcap")
+    os.link(dataset, cache / f"paper-seed1-{simulator_version()}.mcap")
     out = tmp_path / "demo"
     proc = subprocess.run(
         [sys.executable, "-m", "rover.cli.demo", "--output", str(out)],

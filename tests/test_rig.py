@@ -7,8 +7,17 @@ import pytest
 from conftest import reference_data, run_rover
 
 from rover.errors import BadInput, SpecError
-from rover.formats.rig import RigInput, load_rig, rig_from_text
+from rover.formats.rig import (
+    UNNAMED_CHANNEL_FREQ_HZ,
+    RigInput,
+    TagSpec,
+    field_of_view_span_deg,
+    load_rig,
+    rig_from_text,
+)
+from rover.formats.wifi import channel_freq_hz
 from rover.messages import make
+from rover.operators.channel_sweep.operator import ChannelSweep
 
 SETUP = """\
 receiver:
@@ -70,3 +79,79 @@ def test_cli_check_reports_the_plans_conflicts(tmp_path):
         in proc.stdout
     )
     assert "tag 4's 3rd harmonic (5765 MHz, -9.5 dB) lands on channel 153, tag 2's" in proc.stderr
+
+
+BARE = """\
+receiver:
+  antenna_positions_m: [[0, 0], [0, -0.1], [0, -0.2]]
+  channel: 64
+  phase_offsets_rad: [0.0, 0.5, -1.0]
+  field_of_view_deg: [-60, 60]
+"""
+
+
+def test_a_bare_receiver_is_a_rig():
+    rig = rig_from_text(BARE)
+    assert rig.excitation_channel is None and rig.tags == () and rig.receiver_channel == 64
+    assert rig.field_of_view_deg == (-60.0, 60.0) and rig.max_freq_hz == channel_freq_hz(64)
+    np.testing.assert_allclose(rig.phase_offsets(64), [0.0, 0.5, -1.0])
+    with pytest.raises(BadInput, match=r"^channel_sweep: the setup has no excitation channel: add excitation: \{"):
+        rig.require_excitation("channel_sweep")
+    assert rig_from_text(SETUP).require_excitation("channel_sweep") == 165
+
+
+def test_the_frequency_the_array_is_checked_at_is_the_highest_it_listens_on():
+    assert rig_from_text(SETUP).max_freq_hz == channel_freq_hz(153)
+    assert rig_from_text(BARE + "tags: [{id: 1, channel: 36}]\n").max_freq_hz == channel_freq_hz(64)
+    assert rig_from_text(BARE.replace("  channel: 64\n", "")).max_freq_hz == UNNAMED_CHANNEL_FREQ_HZ
+
+
+def test_tags_without_an_excitation_channel_need_their_channel():
+    rig = rig_from_text(BARE + "tags: [{id: 1, channel: 149}]\n")
+    assert rig.tags == (TagSpec(1, 149, None),) and rig.tag_on(149) == rig.tags[0]
+    with pytest.raises(SpecError) as info:
+        rig_from_text(BARE + "tags: [{id: 1, shift_hz: 40000000}]\nexcitation: {}\n", "s.yaml")
+    assert [str(d) for d in info.value.diagnostics] == [
+        "s.yaml:7:13: excitation needs its channel: excitation: {channel: N}"
+    ]
+    with pytest.raises(SpecError) as info:
+        rig_from_text(BARE + "tags: [{id: 1, shift_hz: 40000000}]\n", "s.yaml")
+    (message,) = [str(d) for d in info.value.diagnostics]
+    assert message.startswith("s.yaml:6:") and "tag 1: shift_hz needs the excitation channel" in message
+
+
+def test_a_channel_sweep_needs_the_excitation_channel():
+    setup = make("rover_msgs/msg/RigSetup", setup_yaml=BARE + "tags: [{id: 1, channel: 149}]\n")
+    with pytest.raises(BadInput, match=r"^channel_sweep: the setup has no excitation channel"):
+        list(ChannelSweep().on_input("setup", setup, 0))
+
+
+@pytest.mark.parametrize(
+    ("field", "span"),
+    [((-90, 90), 180), ((270, 90), 180), ((90, -90), 180), ((350, 10), 20), ((0, 360), 360), ((-180, 180), 360)],
+)
+def test_a_field_of_view_runs_counter_clockwise(field, span):
+    assert field_of_view_span_deg(field) == span
+    rig = rig_from_text(BARE.replace("[-60, 60]", f"[{field[0]}, {field[1]}]"))
+    assert rig.field_of_view_deg == field
+
+
+@pytest.mark.parametrize(
+    ("value", "problem"),
+    [
+        ("[10, 10]", "covers less than 1 degree"),
+        ("[10, 10.5]", "covers less than 1 degree"),
+        ("[10]", "must be a list of 2 finite numbers"),
+        ("right", "must be a list of 2 finite numbers"),
+    ],
+)
+def test_a_bad_field_of_view_is_reported_at_its_position(value, problem):
+    with pytest.raises(SpecError) as info:
+        rig_from_text(BARE.replace("[-60, 60]", value), "s.yaml")
+    (message,) = [str(d) for d in info.value.diagnostics]
+    assert message.startswith("s.yaml:5:22: ") and problem in message
+
+
+def test_antennas_at_one_position_are_refused():
+    with pytest.raises(SpecError, match=r"s.yaml:2:.*the antennas are all at one position"):
+        rig_from_text(BARE.replace("[[0, 0], [0, -0.1], [0, -0.2]]", "[[0.1, 0], [0.1, 0]]"), "s.yaml")

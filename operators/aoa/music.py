@@ -34,7 +34,6 @@ RUN_STEP = 2
 NOISE_FACTOR = 10.0
 """An eigenvalue counts as a path when it is this many times the noise level (median of the lower half)..."""
 PATH_FLOOR = 10**-2.5
-CHUNK_PACKETS = 64
 """...and within 25 dB of the strongest: weaker ones are model mismatch (the antenna phases change a
 little across the 20 MHz band), not paths."""
 MAX_STD_RAD = math.pi
@@ -84,6 +83,9 @@ class JointMusic:
         self.angles = np.radians(np.arange(-180.0, 180.0, angle_step_deg))
         self.delays = np.arange(delay_range_s[0], delay_range_s[1] + delay_step_s / 2, delay_step_s)
         self.angle_manifold = self.steer_angle(self.angles)  # (Na, M)
+        pairs = self.angle_manifold[:, None, :] * self.angle_manifold[:, :, None].conj()  # [a, m, n] = conj(a_m) a_n
+        self._pairs_real = np.ascontiguousarray(pairs.real.reshape(len(self.angles), -1))
+        self._pairs_imag = np.ascontiguousarray(pairs.imag.reshape(len(self.angles), -1))
         self.delay_manifold = self.steer_delay(self.delays)  # (Nd, L)
         self.refine_offsets = np.linspace(-1.0, 1.0, 2 * refine_steps + 1)
 
@@ -120,7 +122,9 @@ class JointMusic:
         values, vectors = np.linalg.eigh(cov)  # ascending
         values = np.maximum(values[:, ::-1], 0)
         vectors = vectors[:, :, ::-1]
-        noise = np.median(values[:, values.shape[1] // 2 :], axis=1, keepdims=True) + 1e-30
+        lower = np.sort(values[:, values.shape[1] // 2 :], axis=1)  # np.median is slow on small arrays
+        half = lower.shape[1] // 2
+        noise = 0.5 * (lower[:, half - 1 + lower.shape[1] % 2] + lower[:, half])[:, None] + 1e-30
         floor = np.maximum(NOISE_FACTOR * noise, values[:, :1] * PATH_FLOOR)
         found = np.minimum(np.sum(values > floor, axis=1), self.max_paths)
         paths = np.maximum(found, 1)
@@ -128,14 +132,12 @@ class JointMusic:
         m, w = len(self.antennas), self.window
         e = signal.reshape(signal.shape[0], m, w, self.max_paths).transpose(0, 3, 1, 2).conj()  # (P, K, M, L)
         along_delay = e @ self.delay_manifold.T  # (P, K, M, Nd)
-        out = np.empty((len(cov), len(self.angles), len(self.delays)))
-        for start in range(0, len(cov), CHUNK_PACKETS):
-            part = along_delay[start : start + CHUNK_PACKETS]
-            p, k, _, nd = part.shape
-            flat = part.transpose(2, 0, 1, 3).reshape(m, -1)  # one GEMM for all
-            projection = (self.angle_manifold @ flat).reshape(-1, p, k, nd)  # (Na, P, K, Nd)
-            captured = np.sum(projection.real**2 + projection.imag**2, axis=2)  # (Na, P, Nd)
-            out[start : start + p] = 1.0 / np.maximum(m * w - captured.transpose(1, 0, 2), 1e-9 * m * w)
+        # captured(a, d) = sum_k |a^H E_k b_d|^2 = a^H G_d a with G_d = sum_k (E_k b_d)(E_k b_d)^H: real GEMMs
+        gram = np.einsum("pkmd,pknd->pdmn", along_delay.conj(), along_delay).reshape(len(cov), -1, m * m)
+        captured = self._pairs_real @ gram.real.transpose(2, 0, 1).reshape(m * m, -1)
+        captured -= self._pairs_imag @ gram.imag.transpose(2, 0, 1).reshape(m * m, -1)  # (Na, P * Nd)
+        captured = captured.reshape(len(self.angles), len(cov), -1).transpose(1, 0, 2)
+        out = 1.0 / np.maximum(m * w - captured, 1e-9 * m * w)
         self._signal = e
         return out, found
 

@@ -17,18 +17,19 @@ rover.operators.aoa.music (MUSIC, the direct-path choice and its std) and rover.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from rover.formats.rig import Rig, RigInput
-from rover.formats.wifi import channel_freq_hz
 from rover.geometry import wrap_angle
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.operators.aoa.array import ArrayResponse, array_axis, check_geometry, field_normal, fold_to_side, on_side
-from rover.operators.aoa.music import MAX_STD_RAD, JointMusic, burst_std, check_energy, choose_direct
+from rover.operators.aoa.array import ArrayResponse, array_axis, check_rig_geometry, field_mask, mirror_into_field
+from rover.operators.aoa.jumps import jump_phases
+from rover.operators.aoa.music import MAX_STD_RAD, JointMusic, Peaks, burst_std, check_energy, choose_direct
 from rover.pipeline.params import Checked, Fraction, NonNegativeFloat, PositiveFloat, PositiveInt
 
 log = logging.getLogger("rover.aoa")
@@ -71,6 +72,32 @@ class AoaParams(Checked):
     """remove the rig's per-chain phase offsets (off only to show what calibration is worth)"""
     remove_sto: bool = True
     """remove each packet's sampling-time-offset phase slope (off only to show what it is worth)"""
+    jumps: bool = True
+    """give a candidate per combination of the chains' phase jumps (off: trust the calibration as is)"""
+    merge_deg: PositiveFloat = 2.0
+    """candidates of different jump combinations closer than this are one (the stronger is kept)"""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """The burst's direct path if the chains carry jump combination `jumps`."""
+
+    angle_rad: float
+    std_rad: float
+    power: float
+    jumps: int
+    tof_s: float
+    quality: int
+
+
+def distinguishable(candidates: list[Candidate], merge_rad: float) -> list[Candidate]:
+    """The candidates, the calibration's own (no jump) first and the others most power first,
+    without those within `merge_rad` of one before them."""
+    kept: list[Candidate] = []
+    for c in sorted(candidates, key=lambda c: (c.jumps != 0, -c.power, c.jumps)):
+        if all(abs(float(wrap_angle(c.angle_rad - k.angle_rad))) >= merge_rad for k in kept):
+            kept.append(c)
+    return kept
 
 
 class Aoa(Operator):
@@ -88,7 +115,7 @@ class Aoa(Operator):
         self.estimators: dict[int, JointMusic] = {}
         self.waiting: list[tuple[Any, int]] = []
         self.burst: list[tuple[Any, int]] = []
-        self.half_plane_normal: np.ndarray | None = None
+        self.collinear = False
         self._responses: dict[float, ArrayResponse] = {}
         self.field = np.ones(360, dtype=bool)
 
@@ -106,16 +133,12 @@ class Aoa(Operator):
     def _configure(self, msg: Any) -> None:
         self.rig = self.setup.update(msg)
         antennas = self.rig.antenna_positions_m
-        top = max((channel_freq_hz(t.channel) for t in self.rig.tags), default=5.9e9)
-        warning = check_geometry(antennas, top)
+        warning = check_rig_geometry(self.rig)
         self.estimators, self._responses = {}, {}
-        self.half_plane_normal, self.field = None, np.ones(360, dtype=bool)
-        axis = array_axis(antennas)
+        self.collinear = array_axis(antennas) is not None
+        self.field = field_mask(antennas, self.rig.field_of_view_deg)
         if warning:
             log.warning("%s", warning)
-        if warning and axis is not None:  # the warning is for a collinear array, which has an axis
-            self.half_plane_normal = field_normal(axis)
-            self.field = on_side(np.radians(np.arange(360.0)), self.half_plane_normal)
 
     @property
     def _rig(self) -> Rig:
@@ -167,32 +190,11 @@ class Aoa(Operator):
         music = self._estimator(msg0.channel)
         offsets = self._rig.phase_offsets(msg0.channel) if self.params.calibrate else None
         clean = music.clean(csi, offsets, sto=self.params.remove_sto)
-        cov = music.covariance(clean).mean(axis=0, keepdims=True)
-        spectrum, paths = music.spectrum(cov)
-        if paths[0] == 0:
+        candidates = self._candidates(music, clean, msg0.channel)
+        if not candidates:
             self.drop("bursts too noisy (no path above the noise)")
             return
-        peaks = music.refine(music.peaks(spectrum, k=self.params.max_paths))
-        angle = peaks.angle[0]
-        if self.half_plane_normal is not None:
-            angle = fold_to_side(angle, self.half_plane_normal)
-        best = choose_direct(peaks.delay[0], peaks.height[0], int(paths[0]), self.params)
-        if best is None:
-            self.drop("bursts without a spectrum peak")
-            return
-        response = self._response(music.center_hz)
-        energy = response.energy(np.einsum("pfm,pfn->mn", clean, clean.conj()))
-        direction = check_energy(
-            angle, peaks.delay[0], peaks.height[0], best, energy, response, self.field, self.params
-        )
-        theta, tau, used = direction.angle_rad, float(peaks.delay[0, best]), len(csi)
-        if direction.switched:
-            distance = np.where(peaks.height[0] > 0, np.abs(wrap_angle(angle - theta)), np.inf)
-            tau = float(peaks.delay[0, np.argmin(distance)])
-        quality = QUALITY_SWITCHED if direction.switched else QUALITY_GOOD
-        if direction.rival_power > direction.power * RIVAL_SHARE:
-            quality = quality or QUALITY_RIVAL
-        std, quality = self._ambiguity(theta, burst_std(direction, self.params), quality, response)
+        best = candidates[0]
         stamps = sorted(s for _, s in usable)
         stamp = stamps[len(stamps) // 2]
         yield Emit(
@@ -202,18 +204,65 @@ class Aoa(Operator):
                 header=header(stamp, "base_link"),
                 tag_id=msg0.tag_id,
                 channel=msg0.channel,
-                angle_rad=theta,
-                std_rad=std,
-                tof_s=tau,
-                packets=used,
-                quality=quality,
+                angle_rad=best.angle_rad,
+                std_rad=best.std_rad,
+                tof_s=best.tof_s,
+                packets=len(csi),
+                quality=best.quality,
+                candidate_angles_rad=np.array([c.angle_rad for c in candidates]),
+                candidate_stds_rad=np.array([c.std_rad for c in candidates]),
+                candidate_powers=np.array([c.power for c in candidates]),
+                candidate_jumps=np.array([c.jumps for c in candidates], dtype=np.uint16),
+                chosen=-1,
             ),
             stamp,
         )
 
+    def _candidates(self, music: JointMusic, clean: np.ndarray, channel: int) -> list[Candidate]:
+        """The burst's direct path under each combination of chain phase jumps (rover.operators.aoa.jumps),
+        the distinguishable ones, most power first: the covariances of all combinations are one batch
+        for MUSIC, since undoing a jump only rotates the chains' phases."""
+        p = self.params
+        phases = jump_phases(channel, clean.shape[2], p.jumps)
+        undo = np.exp(-1j * phases)  # (C, M)
+        cov = music.covariance(clean).mean(axis=0)
+        along = np.repeat(undo, music.window, axis=1)  # antenna-major, as the covariance's elements
+        spectrum, paths = music.spectrum(along[:, :, None] * cov[None] * along[:, None, :].conj())
+        peaks = music.refine(music.peaks(spectrum, k=p.max_paths))
+        response = self._response(music.center_hz)
+        spatial = np.einsum("pfm,pfn->mn", clean, clean.conj())
+        energies = response.energy_batch(undo[:, :, None] * spatial[None] * undo[:, None, :].conj())
+        found = []
+        for c in np.flatnonzero(paths > 0):
+            candidate = self._direction(peaks, int(c), int(paths[c]), energies[c], response)
+            if candidate is not None:
+                found.append(candidate)
+        return distinguishable(found, math.radians(p.merge_deg))
+
+    def _direction(
+        self, peaks: Peaks, c: int, paths: int, energy: np.ndarray, response: ArrayResponse
+    ) -> Candidate | None:
+        """The direct path of combination `c`'s spectrum peaks, checked against the power it explains."""
+        angle = mirror_into_field(peaks.angle[c], self._rig.antenna_positions_m, self.field)
+        best = choose_direct(peaks.delay[c], peaks.height[c], paths, self.params)
+        if best is None:
+            return None
+        direction = check_energy(
+            angle, peaks.delay[c], peaks.height[c], best, energy, response, self.field, self.params
+        )
+        theta, tau = direction.angle_rad, float(peaks.delay[c, best])
+        if direction.switched:
+            distance = np.where(peaks.height[c] > 0, np.abs(wrap_angle(angle - theta)), np.inf)
+            tau = float(peaks.delay[c, np.argmin(distance)])
+        quality = QUALITY_SWITCHED if direction.switched else QUALITY_GOOD
+        if direction.rival_power > direction.power * RIVAL_SHARE:
+            quality = quality or QUALITY_RIVAL
+        std, quality = self._ambiguity(theta, burst_std(direction, self.params), quality, response)
+        return Candidate(theta, std, direction.power, c, tau, quality)
+
     def _ambiguity(self, theta: float, std: float, quality: int, response: ArrayResponse) -> tuple[float, int]:
         """Inflate the std where a direction outside the main lobe looks almost the same to the array."""
-        if self.half_plane_normal is not None:
+        if self.collinear:
             return std, quality
         worst = float(response.worst(theta))
         if worst > NEAR_AMBIGUOUS_CORRELATION:

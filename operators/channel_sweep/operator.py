@@ -72,11 +72,12 @@ class ChannelSweep(Operator):
         rig = self.setup.update(msg)
         self.rig = rig
         p = self.params
+        excitation = rig.require_excitation("channel_sweep")
         wanted = {t.id: t.channel for t in rig.tags}
-        found = conflicts(rig.excitation_channel, wanted, p.channels)
-        best = max_tags(rig.excitation_channel, p.channels, p.max_shift_hz)
+        found = conflicts(excitation, wanted, p.channels)
+        best = max_tags(excitation, p.channels, p.max_shift_hz)
         if found:
-            plan = propose(rig.excitation_channel, wanted, p.channels, p.max_shift_hz)
+            plan = propose(excitation, wanted, p.channels, p.max_shift_hz)
             advice = (
                 f"a conflict-free assignment: {', '.join(f'tag {t} -> {c}' for t, c in sorted(plan.channels.items()))}"
                 if plan
@@ -88,7 +89,7 @@ class ChannelSweep(Operator):
             for line in lines:
                 log.warning("channel plan: %s", line)
             log.warning("channel plan: %s", advice)
-        log.info("excitation channel %d allows at most %d tags at once", rig.excitation_channel, len(best))
+        log.info("excitation channel %d allows at most %d tags at once", excitation, len(best))
         self.owner = dict(sorted((t.channel, t.id) for t in rig.tags))
         dwell = rig.dwell_s or p.dwell_s
         yield Emit(
@@ -96,7 +97,7 @@ class ChannelSweep(Operator):
             make(
                 "rover_msgs/msg/SweepSchedule",
                 header=header(stamp_ns, "base_link"),
-                excitation_channel=rig.excitation_channel,
+                excitation_channel=excitation,
                 channels=np.array(list(self.owner), dtype=np.uint16),
                 tag_ids=np.array(list(self.owner.values()), dtype=np.uint32),
                 dwell_s=dwell,

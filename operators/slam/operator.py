@@ -9,6 +9,7 @@ leaves the window, the path now and then, the tags with their covariance, and so
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -20,7 +21,7 @@ import numpy as np
 from rover.geometry import quaternion_from_yaw, yaw_from_quaternion
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.operators.slam.sliding_window import Edge, SlidingWindow, WindowSettings
+from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings
 from rover.pipeline.params import PositiveFloat
 
 log = logging.getLogger("rover.slam")
@@ -63,6 +64,17 @@ def pose_message(stamp: int, x: float, y: float, yaw: float) -> Any:
     )
 
 
+def candidates_of(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An Aoa message's candidate angles, stds and jump combinations (its single angle when it has none)."""
+    if len(msg.candidate_angles_rad):
+        return (
+            np.asarray(msg.candidate_angles_rad, float),
+            np.asarray(msg.candidate_stds_rad, float),
+            np.asarray(msg.candidate_jumps, int),
+        )
+    return np.array([msg.angle_rad]), np.array([msg.std_rad]), np.array([-1])
+
+
 def edge_of(msg: Any) -> Edge:
     """The x/y odometry of a Preintegration message."""
     delta = np.array([msg.delta_velocity.x, msg.delta_velocity.y, msg.delta_position.x, msg.delta_position.y])
@@ -91,6 +103,10 @@ class Slam(Operator):
         "tags": Out("rover_msgs/msg/TagArray", doc="every tag heard, with its 2x2 covariance"),
         "diagnostics": Out("rover_msgs/msg/SlamDiagnostics"),
         "timing": Out("rover_msgs/msg/Timing", doc="wall-clock time of each update, every reweighting pass included"),
+        "bearings": Out(
+            "rover_msgs/msg/Aoa",
+            doc="each AoA as its epoch leaves the window, with the candidate used (`chosen`; -1: tag not yet found)",
+        ),
     }
     Params = SlamParams
 
@@ -108,6 +124,7 @@ class Slam(Operator):
         self.updates = 0
         self.failures = 0
         self.unchained = 0
+        self.found_sent = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "aoa":
@@ -123,37 +140,49 @@ class Slam(Operator):
         yield from self._odometry(msg, stamp_ns)
 
     def _bearing(self, msg: Any, stamp: int) -> None:
-        if not (math.isfinite(msg.angle_rad) and math.isfinite(msg.std_rad) and msg.std_rad > 0):
+        angles, stds, _ = candidates_of(msg)
+        if not (np.isfinite(angles).all() and np.isfinite(stds).all() and (stds > 0).all()):
             self.drop("AoAs with a non-finite angle or std")
             return
         self.channels[msg.tag_id] = msg.channel
         self.pending.setdefault(stamp, []).append(msg)
 
-    def _take(self, stamp: int) -> tuple[list[int], np.ndarray, np.ndarray]:
-        """The AoAs at this epoch; older ones that never became an epoch are counted as dropped."""
+    def _take(self, stamp: int) -> dict[str, Any]:
+        """The AoAs at this epoch as add_epoch's arguments; older ones that never became an epoch are
+        counted as dropped."""
         late = [s for s in self.pending if s < stamp]
         for s in late:
             self.drop("AoAs without an IMU epoch", len(self.pending.pop(s)))
         msgs = self.pending.pop(stamp, [])
-        return (
-            [m.tag_id for m in msgs],
-            np.array([m.angle_rad for m in msgs]),
-            np.array([m.std_rad for m in msgs]) * self.params.aoa_std_scale,
+        rows = [candidates_of(m) for m in msgs]
+        width = max((len(a) for a, _, _ in rows), default=1)
+
+        def padded(i: int, pad: float) -> np.ndarray:
+            return np.array([np.pad(r[i], (0, width - len(r[i])), constant_values=pad) for r in rows]).reshape(
+                -1, width
+            )
+
+        return dict(
+            tag_ids=[m.tag_id for m in msgs],
+            angles_rad=padded(0, np.nan),
+            stds_rad=padded(1, 1.0),
+            jumps=padded(2, -1).astype(int),
+            messages=msgs,
         )
 
     def _odometry(self, msg: Any, stamp: int):
         start = msg.start.sec * 1_000_000_000 + msg.start.nanosec
         w = self.window
         if not w.epochs and not w.finals:
-            ids, angles, stds = self._take(start)
-            w.add_epoch(start, yaw_of(msg.orientation_start), ids, angles, stds, None)
+            w.add_epoch(start, yaw_of(msg.orientation_start), edge=None, **self._take(start))
         elif w.epochs and start != w.epochs[-1].stamp_ns:
             self.unchained += 1
         if msg.dt <= 0 or not np.isfinite(np.asarray(msg.covariance)).all():
             self.drop("odometry increments with no duration or a non-finite covariance")
             return
-        ids, angles, stds = self._take(stamp)
-        w.add_epoch(stamp, yaw_of(msg.orientation), ids, angles, stds, edge_of(msg), self._speed_at(stamp))
+        w.add_epoch(
+            stamp, yaw_of(msg.orientation), edge=edge_of(msg), speed_m_s=self._speed_at(stamp), **self._take(stamp)
+        )
         if self.params.batch:
             return
         yield from self._finals(stamp)
@@ -196,10 +225,41 @@ class Slam(Operator):
         yield Emit("timing", timing, stamp)
 
     def _finals(self, stamp: int):
-        """Poses that left the window since the last call, stamped now on the wire."""
+        """Poses that left the window since the last call, and their AoAs with the candidate used,
+        stamped now on the wire."""
         for s, x, y, yaw in self.window.finals[self.finals_sent :]:
             yield Emit("trajectory", pose_message(s, x, y, yaw), stamp)
         self.finals_sent = len(self.window.finals)
+        for t, found in self.window.found[self.found_sent :]:
+            held = (
+                f"jump combination {found.combination} all along" if found.combination >= 0 else "jumps at any retune"
+            )
+            log.info(
+                "slam: tag %d found at (%.2f, %.2f) m (%s): %.0f%% of its bearings agree, seen over %.0f deg, "
+                "margin %.0f",
+                t,
+                *found.position,
+                held,
+                100 * found.inliers,
+                found.parallax_deg,
+                found.margin,
+            )
+        self.found_sent = len(self.window.found)
+        for epoch in self.window.left:
+            yield from self._bearings(epoch, stamp)
+        self.window.left.clear()
+
+    def _bearings(self, epoch: Epoch, stamp: int):
+        active = self.window.active
+        for j, msg in enumerate(epoch.messages):
+            used = bool(active[epoch.tags[j]])
+            angles, stds, _ = candidates_of(msg)
+            choice = int(epoch.choice[j]) if used else -1
+            out = copy.copy(msg)
+            if choice >= 0:
+                out.angle_rad, out.std_rad = float(angles[choice]), float(stds[choice])
+            out.chosen = choice
+            yield Emit("bearings", out, stamp)
 
     def _tags(self, stamp: int) -> Any:
         w = self.window
@@ -234,6 +294,7 @@ class Slam(Operator):
         yield Emit("path", self._path(stamp), stamp)
         yield Emit("tags", self._tags(stamp), stamp)
         w.finals.extend(w.poses())
+        w.left.extend(w.epochs)
         yield from self._finals(stamp)
         if self.pending:
             self.drop("AoAs after the last IMU epoch", sum(len(v) for v in self.pending.values()))

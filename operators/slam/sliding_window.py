@@ -27,6 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg
 
+from rover.operators.slam.tag_search import Found, SearchSettings, search
 from rover.operators.slam.window_program import (
     Shape,
     SolverFailed,
@@ -82,6 +83,9 @@ class WindowSettings(Checked):
     """how much of the tag's prior information is kept at such a reset"""
     observable_std_m: PositiveFloat = 0.5
     """a tag is reported localized once its position's largest standard deviation is below this"""
+    aoa_std_scale: PositiveFloat = 1.0
+    """multiplies each AoA's std in the window (not in the search for a tag, which compares bearings
+    spread over the whole run)"""
 
 
 @dataclass
@@ -91,13 +95,33 @@ class Epoch:
     """heading from the gyro (world frame)"""
     tags: np.ndarray
     """tag slot of each bearing"""
-    bearing: np.ndarray
-    """world-frame unit vectors (k, 2)"""
-    std: np.ndarray
-    """AoA standard deviations (rad)"""
+    candidates: np.ndarray
+    """world-frame angles (k, K) of each bearing's candidates (one per chain phase-jump combination), NaN-padded"""
+    candidate_std: np.ndarray
+    """their standard deviations (rad)"""
+    candidate_jumps: np.ndarray
+    """the jump combination each candidate assumes (-1: padding or unknown)"""
+    choice: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    """the candidate each bearing uses now (max-mixture: the likeliest at the current estimate)"""
+    messages: list[Any] = field(default_factory=list)
+    """what the bearings came from, handed back with the final choice (opaque here)"""
     velocity_info: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
     """wheel odometry on this epoch's velocity: 0.5 v'Wv - w'v"""
     velocity_linear: np.ndarray = field(default_factory=lambda: np.zeros(2))
+
+    def __post_init__(self) -> None:
+        if len(self.choice) != len(self.tags):
+            self.choice = np.zeros(len(self.tags), int)
+
+    @property
+    def bearing(self) -> np.ndarray:
+        """World-frame unit vectors (k, 2) of the chosen candidates."""
+        angle = self.candidates[np.arange(len(self.tags)), self.choice]
+        return np.stack([np.cos(angle), np.sin(angle)], axis=1).reshape(-1, 2)
+
+    @property
+    def std(self) -> np.ndarray:
+        return self.candidate_std[np.arange(len(self.tags)), self.choice]
 
 
 @dataclass
@@ -176,6 +200,17 @@ def angle_residuals(
     return residual, np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * std)[:, None]
 
 
+SEARCH_HISTORY = 400
+"""bearings kept per tag waiting for the search (the latest)"""
+SEARCH_EVERY = 4
+"""new bearings of a waiting tag between two searches"""
+SEARCH_INFO_SCALE = 0.25
+"""share of the information of a found tag's earlier bearings kept as its prior (their robot
+positions are taken as known, which they are not quite)"""
+SELECT_CAP_SIGMA = 3.0
+"""in the max-mixture, a candidate further off than this many stds is as unlikely as any other"""
+LOCK_BEARINGS = 20
+LOCK_SHARE = 0.9
 GN_HINGE_WEIGHT = 1e-6
 """the Gauss-Newton steps need no cheirality (the angle residual has it); a tiny weight keeps h unique"""
 PV_FROM_VP = [2, 3, 0, 1]
@@ -200,6 +235,22 @@ class SlidingWindow:
     disagreement: dict[int, int] = field(default_factory=dict)
     """per tag slot: consecutive updates in which most of its bearings were Huber-active"""
     resets: int = 0
+    search: SearchSettings = field(default_factory=SearchSettings)
+    active: list[bool] = field(default_factory=list)
+    """per tag slot: its bearings are used (a tag whose bearings carry several candidates waits
+    until the search has found where it is)"""
+    history: dict[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    """per tag slot waiting for the search: (stamp, world candidate angles, stds, jumps) of its bearings"""
+    searched: dict[int, int] = field(default_factory=dict)
+    """per tag slot: bearings in its history at its last search"""
+    final_xy: dict[int, np.ndarray] = field(default_factory=dict)
+    """robot position of each epoch that left the window, by stamp"""
+    jump_counts: dict[int, dict[int, int]] = field(default_factory=dict)
+    """per tag slot: how often each jump combination was chosen, for the max-mixture's weights"""
+    left: list[Epoch] = field(default_factory=list)
+    """epochs that left the window since the owner last emptied this list (their choices are final)"""
+    found: list[tuple[int, Found]] = field(default_factory=list)
+    """(tag id, search result) of every tag the search localized, in order"""
 
     @property
     def _prior(self) -> Prior:
@@ -228,12 +279,20 @@ class SlidingWindow:
         stds_rad: np.ndarray,
         edge: Edge | None,
         speed_m_s: float | None = None,
+        jumps: np.ndarray | None = None,
+        messages: list[Any] | None = None,
     ) -> None:
-        """Append an epoch: the robot-frame AoAs seen there, the odometry from the previous epoch and,
-        when there is wheel odometry, the forward speed."""
+        """Append an epoch: the robot-frame AoAs seen there (one per tag, or (tags, K) candidates,
+        NaN-padded, with the jump combination each assumes), the odometry from the previous epoch
+        and, when there is wheel odometry, the forward speed."""
         s = self.settings
-        direction = yaw + np.asarray(angles_rad, float)
-        bearing = np.stack([np.cos(direction), np.sin(direction)], axis=1).reshape(-1, 2)
+        n = len(tag_ids)
+        candidates = yaw + np.asarray(angles_rad, float).reshape(n, -1 if n else 1)
+        raw_std = np.asarray(stds_rad, float).reshape(n, -1 if n else 1)
+        candidate_std = raw_std * s.aoa_std_scale
+        jumps = np.full(candidates.shape, -1) if jumps is None else np.asarray(jumps, int).reshape(candidates.shape)
+        first = candidates[:, 0]
+        bearing = np.stack([np.cos(first), np.sin(first)], axis=1).reshape(-1, 2)
         if not self.epochs:
             state = np.zeros(4)
             if self.prior is None:
@@ -248,14 +307,23 @@ class SlidingWindow:
             self.edges.append(edge)
         tags = self.tag_positions()
         slots = []
-        for tag_id, u in zip(tag_ids, bearing, strict=True):
+        several = np.sum(np.isfinite(candidates), axis=1) > 1
+        for j, (tag_id, u) in enumerate(zip(tag_ids, bearing, strict=True)):
             if tag_id not in self.tag_ids:
                 guess = state[0:2] + s.initial_range_m * u
                 self._add_tag(tag_id, guess)
+                self.active.append(not several[j])
                 tags = np.vstack([tags, guess])
-            slots.append(self.tag_ids.index(tag_id))
+            t = self.tag_ids.index(tag_id)
+            slots.append(t)
+            if several[j]:
+                kept = self.history.setdefault(t, [])
+                kept.append((stamp_ns, candidates[j], raw_std[j], jumps[j]))
+                del kept[:-SEARCH_HISTORY]
         self.x = np.concatenate([self.x[: 4 * len(self.epochs)], state, tags.ravel()])
-        epoch = Epoch(stamp_ns, yaw, np.array(slots, dtype=int), bearing, np.asarray(stds_rad, float))
+        epoch = Epoch(
+            stamp_ns, yaw, np.array(slots, dtype=int), candidates, candidate_std, jumps, messages=list(messages or [])
+        )
         forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
         if s.nonholonomic:
             epoch.velocity_info = np.outer(side, side) / s.lateral_std_m_s**2
@@ -289,7 +357,122 @@ class SlidingWindow:
         for k, e in enumerate(self.epochs):
             at = slice(k * shape.slots, k * shape.slots + len(e.tags))
             tag[at], bearing[at], std[at] = e.tags, e.bearing, e.std
-        return epoch, tag, bearing, std, tag >= 0
+        active = np.array(self.active + [False], bool)
+        return epoch, tag, bearing, std, (tag >= 0) & active[tag]
+
+    def _candidate_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per bearing in the window: epoch index, tag slot, candidate angles, stds and jumps (padded to
+        the window's most candidates)."""
+        width = max((e.candidates.shape[1] for e in self.epochs if len(e.tags)), default=1)
+        epoch = np.concatenate([np.full(len(e.tags), k) for k, e in enumerate(self.epochs)]).astype(int)
+        tag = np.concatenate([e.tags for e in self.epochs]).astype(int)
+
+        def stack(values: list[np.ndarray], pad: float) -> np.ndarray:
+            return np.concatenate(
+                [np.pad(v, ((0, 0), (0, width - v.shape[1])), constant_values=pad) for v in values]
+            ).reshape(-1, width)
+
+        return (
+            epoch,
+            tag,
+            stack([e.candidates for e in self.epochs], np.nan),
+            stack([e.candidate_std for e in self.epochs], 1.0),
+            stack([e.candidate_jumps for e in self.epochs], -1),
+        )
+
+    def _select(self, x: np.ndarray) -> None:
+        """Max-mixture: each bearing of a tag in use takes the candidate likeliest at the estimate x,
+        the learned weights of the jump combinations included (a once-per-run combination soon dominates)."""
+        if not any(self.active) or not self.epochs:
+            return
+        epoch, tag, angles, stds, jumps = self._candidate_rows()
+        if len(tag) == 0 or angles.shape[1] == 1:
+            return
+        offset = self._offsets(x, epoch, tag)
+        predicted = np.arctan2(offset[:, 1], offset[:, 0])
+        r = wrap(predicted[:, None] - angles) / stds
+        cost = 0.5 * np.minimum(r**2, SELECT_CAP_SIGMA**2) + np.log(stds) - self._log_weights(tag, jumps)
+        choice = np.argmin(np.where(np.isfinite(r), cost, np.inf), axis=1)
+        use = np.array(self.active, bool)[tag]
+        start = 0
+        for e in self.epochs:
+            n = len(e.tags)
+            e.choice = np.where(use[start : start + n], choice[start : start + n], e.choice)
+            start += n
+
+    def _log_weights(self, tag: np.ndarray, jumps: np.ndarray) -> np.ndarray:
+        """log of each candidate's combination weight for its tag: chosen counts plus one, normalized."""
+        combinations = max(int(jumps.max()) + 1, 1)
+        out = np.zeros(jumps.shape)
+        for t in np.unique(tag):
+            counts = self.jump_counts.get(int(t), {})
+            total = sum(counts.values()) + combinations
+            table = np.log((np.array([counts.get(c, 0) for c in range(combinations)]) + 1.0) / total)
+            mine = tag == t
+            out[mine] = np.where(jumps[mine] >= 0, table[np.maximum(jumps[mine], 0)], -math.log(combinations))
+        return out
+
+    def locked(self, tag_slot: int) -> int | None:
+        """The jump combination a tag has settled on (chosen for 90% of at least 20 bearings), if any."""
+        counts = self.jump_counts.get(tag_slot, {})
+        total = sum(counts.values())
+        if total < LOCK_BEARINGS:
+            return None
+        top = max(counts, key=lambda c: counts[c])
+        return top if counts[top] >= LOCK_SHARE * total else None
+
+    def _search(self) -> None:
+        """Look for the tags waiting for their position whose history grew since their last search."""
+        window_xy = {e.stamp_ns: self.x[4 * k : 4 * k + 2] for k, e in enumerate(self.epochs)}
+        for t, kept in list(self.history.items()):
+            if self.active[t] or len(kept) < self.searched.get(t, 0) + SEARCH_EVERY:
+                continue
+            self.searched[t] = len(kept)
+            rows = [(st, xy, row) for st, *row in kept if (xy := self.final_xy.get(st, window_xy.get(st))) is not None]
+            if len(rows) < self.search.min_bearings:
+                continue
+            width = max(len(row[0]) for _, _, row in rows)
+
+            def padded(i: int, pad: float, rows=rows, width=width) -> np.ndarray:
+                return np.array([np.pad(row[i], (0, width - len(row[i])), constant_values=pad) for _, _, row in rows])
+
+            robot = np.array([xy for _, xy, _ in rows])
+            angles, stds, jumps = padded(0, np.nan), padded(1, 1.0), padded(2, -1).astype(int)
+            found = search(robot, angles, stds, self.search, jumps)
+            if found is not None and found.clear(self.search):
+                self._activate(t, found, np.array([st for st, _, _ in rows]), robot, stds, jumps)
+
+    def _activate(
+        self, t: int, found: Found, stamps: np.ndarray, robot: np.ndarray, stds: np.ndarray, jumps: np.ndarray
+    ) -> None:
+        """Put a found tag in use: at its position, with the information of its bearings that already
+        left the window as its prior (their robot positions taken as known, so weighed down), and
+        its bearings' jump combinations as the first counts of its mixture weights."""
+        e = len(self.epochs)
+        self.x[4 * e + 2 * t : 4 * e + 2 * t + 2] = found.position
+        oldest = self.epochs[0].stamp_ns if self.epochs else 0
+        inlier = found.choice >= 0
+        gone = inlier & (stamps < oldest)
+        info = np.eye(2) * self.settings.tag_prior_std_m**-2
+        if gone.any():
+            d = found.position[None, :] - robot[gone]
+            std = stds[gone, found.choice[gone]] * self.settings.aoa_std_scale
+            jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (np.maximum(np.sum(d**2, axis=1), 1e-6) * std)[:, None]
+            info = info + SEARCH_INFO_SCALE * jac.T @ jac
+        p = self._prior
+        at = 4 + 2 * t + np.arange(2)
+        p.info[at, :] = 0.0
+        p.info[:, at] = 0.0
+        p.info[np.ix_(at, at)] = info
+        p.mean[at] = found.position
+        p.grad[at] = 0.0
+        self.active[t] = True
+        self.history.pop(t, None)
+        counts = self.jump_counts.setdefault(t, {})
+        for j in jumps[np.flatnonzero(inlier), found.choice[inlier]]:
+            if j >= 0:
+                counts[int(j)] = counts.get(int(j), 0) + 1
+        self.found.append((self.tag_ids[t], found))
 
     def _offsets(self, x: np.ndarray, epoch: np.ndarray, tag: np.ndarray) -> np.ndarray:
         """Robot-to-tag vectors b - mu per slot."""
@@ -367,6 +550,8 @@ class SlidingWindow:
             edge_delta=model.edge_delta,
             huber_m=s.huber_sigma,
         )
+        self._search()
+        self._select(self.x)
         epoch, tag, bearing, std, filled = self._rows()
         perp = np.stack([-bearing[:, 1], bearing[:, 0]], axis=1)
         zeros_g = np.zeros((shape.rows, 2 + 2 * shape.tags))
@@ -397,6 +582,8 @@ class SlidingWindow:
                 unsure = filled & (weight >= 1.0) & ~localized[np.maximum(tag, 0)]
                 if np.all(np.abs(d - settled)[unsure] <= s.reweight_tolerance * settled[unsure]):
                     break
+            self._select(x)
+            epoch, tag, bearing, std, filled = self._rows()
             residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
             cost = self._cost(model, x, residual[filled])
             res_p, jb_p = self._angles(self.x, epoch, tag, bearing, std, filled)
@@ -531,6 +718,12 @@ class SlidingWindow:
             r, jb = angle_residuals(delta, old.bearing, old.std, s.min_range_m)
             w = huber_weight(r, s.huber_sigma)
             for j, t in enumerate(old.tags):
+                if not self.active[t]:
+                    continue
+                jump = int(old.candidate_jumps[j, old.choice[j]])
+                if jump >= 0:
+                    counts = self.jump_counts.setdefault(int(t), {})
+                    counts[jump] = counts.get(jump, 0) + 1
                 cols = np.concatenate([[0, 1], 4 + 2 * t + np.arange(2)])
                 row = np.concatenate([-jb[j], jb[j]])
                 info[np.ix_(cols, cols)] += w[j] * np.outer(row, row)
@@ -548,6 +741,8 @@ class SlidingWindow:
         new_info = np.linalg.inv(new_cov)
         self.prior = Prior(0.5 * (new_info + new_info.T), new_mean, np.zeros(4 + 2 * nt))
         self.finals.append((old.stamp_ns, float(x[0]), float(x[1]), old.yaw))
+        self.final_xy[old.stamp_ns] = x[0:2].copy()
+        self.left.append(old)
         self.epochs.pop(0)
         self.edges.pop(0)
         self.x = x[4:].copy()

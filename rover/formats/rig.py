@@ -1,7 +1,9 @@
 """The rig description (`setup.yaml`, MCAP metadata `rover.setup`, `RigSetup` messages).
 
 Antenna positions in the robot frame (x forward, y left), per-chain phase calibration, the
-excitation channel, the tags and their channels, topic names and the IMU mounting.
+channel and field of view of the receiver, and for a backscatter set-up the excitation channel
+and the tags with their channels; topic names and the IMU mounting. A bare receiver (antennas,
+channel, calibration; no excitation, no tags) is a valid rig.
 """
 
 from __future__ import annotations
@@ -19,9 +21,14 @@ from rover.pipeline.spec import did_you_mean, read_yaml_text
 from rover.pipeline.yamlpos import Located, load
 
 TOP_KEYS = ("receiver", "excitation", "tags", "topics", "imu", "sweep")
-RECEIVER_KEYS = ("antenna_positions_m", "phase_offsets_rad", "interface")
+RECEIVER_KEYS = ("antenna_positions_m", "phase_offsets_rad", "interface", "channel", "field_of_view_deg")
 TAG_KEYS = ("id", "channel", "shift_hz", "name")
 DEFAULT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
+UNNAMED_CHANNEL_FREQ_HZ = 5.9e9
+"""the top of the 5 GHz band: where a rig that names no channel has its array checked (the worst case)"""
+FULL_CIRCLE_DEG = 360.0
+MIN_FIELD_OF_VIEW_DEG = 1.0
+"""a field of view must hold at least one whole degree, the angle grid of the aoa operator"""
 
 
 @dataclass(frozen=True)
@@ -30,7 +37,8 @@ class TagSpec:
 
     id: int
     channel: int
-    shift_hz: float
+    shift_hz: float | None
+    """None when the setup has no excitation channel to measure the shift from"""
 
 
 @dataclass(frozen=True)
@@ -55,7 +63,8 @@ class Rig:
     """A checked rig description. `text` is the YAML it came from, passed along verbatim."""
 
     antenna_positions_m: np.ndarray
-    excitation_channel: int
+    excitation_channel: int | None
+    """None for a bare receiver (no `excitation:`); see `require_excitation`"""
     tags: tuple[TagSpec, ...]
     phase_offsets_rad: dict[int | None, np.ndarray] = field(default_factory=dict)
     interface: str = "wlan0"
@@ -64,6 +73,26 @@ class Rig:
     dwell_s: float | None = None
     text: str = ""
     warnings: tuple[Diagnostic, ...] = ()
+    receiver_channel: int | None = None
+    """`receiver.channel`: the channel a bare receiver listens on"""
+    field_of_view_deg: tuple[float, float] | None = None
+    """`receiver.field_of_view_deg` as given: [from, to] counter-clockwise (None: the array's default)"""
+
+    @property
+    def max_freq_hz(self) -> float:
+        """The highest frequency the receiver listens on (its tags' channels and receiver.channel): the
+        array's geometry is checked there, where aliasing is worst; the top of the 5 GHz band when the
+        rig names no channel."""
+        channels = [t.channel for t in self.tags]
+        if self.receiver_channel is not None:
+            channels.append(self.receiver_channel)
+        return max((channel_freq_hz(c) for c in channels), default=UNNAMED_CHANNEL_FREQ_HZ)
+
+    def require_excitation(self, what: str) -> int:
+        """The excitation channel, for `what`, which needs a backscatter set-up; BadInput without one."""
+        if self.excitation_channel is None:
+            raise BadInput(f"{what}: the setup has no excitation channel: add excitation: {{channel: N}} to it")
+        return self.excitation_channel
 
     def phase_offsets(self, channel: int) -> np.ndarray:
         """Per-antenna phase offsets for a channel (zeros when the rig has no calibration for it)."""
@@ -164,6 +193,8 @@ def parse_rig(doc: Located) -> Rig:
         ]
         if all(row is not None and len(row) in (2, 3) for row in rows):
             antennas = np.array([row[:2] for row in rows if row is not None])
+            if np.ptp(antennas, axis=0).max() == 0:
+                r.error(("receiver", "antenna_positions_m"), "the antennas are all at one position")
         elif all(row is not None for row in rows):
             r.error(("receiver", "antenna_positions_m"), "antenna positions are [x, y] (or [x, y, z]) in metres")
 
@@ -184,14 +215,19 @@ def parse_rig(doc: Located) -> Rig:
         if row is not None:
             offsets[ch] = np.array(row)
 
+    rx_channel = (
+        r.channel(receiver["channel"], ("receiver", "channel"), "receiver.channel") if "channel" in receiver else None
+    )
+    field_of_view = _field_of_view(r, receiver.get("field_of_view_deg"))
+
     excitation = r.section(top.get("excitation"), ("excitation",), ("channel",), "excitation")
     exc_channel = (
         r.channel(excitation.get("channel"), ("excitation", "channel"), "excitation.channel")
         if "channel" in excitation
         else None
     )
-    if exc_channel is None and "channel" not in excitation:
-        r.error(("excitation",) if "excitation" in top else (), "the setup needs excitation: {channel: N}")
+    if "excitation" in top and "channel" not in excitation:
+        r.error(("excitation",), "excitation needs its channel: excitation: {channel: N}")
 
     tags: list[TagSpec] = []
     raw_tags = top.get("tags", [])
@@ -206,7 +242,7 @@ def parse_rig(doc: Located) -> Rig:
             continue
         if any(t.id == tag_id for t in tags):
             r.error(("tags", i, "id"), f"tag id {tag_id} appears twice")
-        spec = _tag(r, ("tags", i), tag_id, tag, exc_channel)
+        spec = _tag(r, ("tags", i), tag_id, tag, exc_channel, "excitation" in top)
         if spec is not None:
             tags.append(spec)
 
@@ -222,7 +258,6 @@ def parse_rig(doc: Located) -> Rig:
 
     if r.errors:
         raise SpecError(r.errors + r.warnings)
-    assert exc_channel is not None, "a missing or bad excitation channel is reported above"
     interface = receiver.get("interface", "wlan0")
     return Rig(
         antennas,
@@ -235,18 +270,62 @@ def parse_rig(doc: Located) -> Rig:
         sweep.dwell_s,
         "",
         tuple(r.warnings),
+        rx_channel,
+        field_of_view,
     )
 
 
+def field_of_view_span_deg(field_of_view_deg: tuple[float, float]) -> float:
+    """Degrees a field of view [from, to] covers going counter-clockwise from `from` to `to`, in (0, 360]:
+    [-90, 90] and [270, 90] are the front half, [90, -90] the back half, [0, 360] the whole circle."""
+    start, stop = field_of_view_deg
+    span = (stop - start) % FULL_CIRCLE_DEG
+    return FULL_CIRCLE_DEG if span == 0 and stop != start else span
+
+
+def _field_of_view(r: _Reader, value: Any) -> tuple[float, float] | None:
+    """receiver.field_of_view_deg as [from, to] in degrees, or None (absent, or reported)."""
+    if value is None:
+        return None
+    path = ("receiver", "field_of_view_deg")
+    row = r.numbers(value, path, "receiver.field_of_view_deg [from, to] (degrees)", 2)
+    if row is None:
+        return None
+    field_of_view = (row[0], row[1])
+    if row[0] == row[1] or field_of_view_span_deg(field_of_view) < MIN_FIELD_OF_VIEW_DEG:
+        r.error(
+            path,
+            f"receiver.field_of_view_deg {row} covers less than {MIN_FIELD_OF_VIEW_DEG:g} degree "
+            "(it runs counter-clockwise from the first angle to the second; [0, 360] is the whole circle)",
+        )
+        return None
+    return field_of_view
+
+
 def _tag(
-    r: _Reader, path: tuple[Any, ...], tag_id: int, tag: dict[Any, Any], exc_channel: int | None
+    r: _Reader,
+    path: tuple[Any, ...],
+    tag_id: int,
+    tag: dict[Any, Any],
+    exc_channel: int | None,
+    excitation_given: bool,
 ) -> TagSpec | None:
+    """A tag's spec; without an excitation channel (none given, or a bad one reported already) a tag
+    needs its channel, and its shift stays unknown."""
     channel = r.channel(tag["channel"], path + ("channel",), f"tag {tag_id} channel") if "channel" in tag else None
     shift = tag.get("shift_hz")
     if "channel" in tag and channel is None:
         return None
     if exc_channel is None:
-        return None
+        if shift is not None and not excitation_given:
+            r.error(
+                path + ("shift_hz",),
+                f"tag {tag_id}: shift_hz needs the excitation channel: add excitation: {{channel: N}} "
+                "or give the tag's channel",
+            )
+        elif shift is None and channel is None:
+            r.error(path, f"tag {tag_id} needs a channel or a shift_hz")
+        return TagSpec(tag_id, channel, None) if channel is not None and shift is None else None
     f_c = channel_freq_hz(exc_channel)
     if shift is not None:
         if r.positive(shift, path + ("shift_hz",), f"tag {tag_id} shift_hz (Hz)") is None:

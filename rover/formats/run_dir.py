@@ -26,7 +26,11 @@ def poses_of(trajectory: Trajectory) -> Poses2D:
 
 
 RUN_TAG_COLUMNS = ("id", "x", "y", "var_x", "cov_xy", "var_y")
-RESULT_TYPES = {"/rover/tags": "rover_msgs/msg/TagArray", "/rover/aoa": "rover_msgs/msg/Aoa"}
+RESULT_TYPES = {
+    "/rover/tags": "rover_msgs/msg/TagArray",
+    "/rover/aoa": "rover_msgs/msg/Aoa",
+    "/rover/bearings": "rover_msgs/msg/Aoa",
+}
 
 
 def _read_tags(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -53,22 +57,23 @@ def _optional_float(row: dict[str, str], column: str, where: str) -> float:
 
 
 def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]], list[tuple[int, int, float, float]]]:
-    """Tag estimates over time and the AoAs from results.mcap (empty when the file is absent)."""
+    """Tag estimates over time and the AoAs from results.mcap (empty when the file is absent): the
+    AoAs as the SLAM used them (`/rover/bearings`, those it resolved) when the run recorded them."""
     from rover.formats.bag import BagReader
 
     history: list[tuple[int, int, float, float, bool]] = []
-    aoa: list[tuple[int, int, float, float]] = []
+    aoa: dict[str, list[tuple[int, int, float, float]]] = {"/rover/aoa": [], "/rover/bearings": []}
     if not path.exists():
-        return history, aoa
+        return history, []
     with BagReader(path, "cannot read") as bag:
         for m in bag.messages(RESULT_TYPES):
             msg = bag.decode(m, RESULT_TYPES[m.topic])
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            if m.topic == "/rover/aoa":
-                aoa.append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
-            else:
+            if m.topic == "/rover/tags":
                 history += [(stamp, t.id, t.position.x, t.position.y, t.observable) for t in msg.tags]
-    return history, aoa
+            elif m.topic == "/rover/aoa" or msg.chosen >= 0:
+                aoa[m.topic].append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
+    return history, aoa["/rover/bearings"] or aoa["/rover/aoa"]
 
 
 def record(

@@ -3,6 +3,8 @@ list, and the subcarriers the CSI Tool reports."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 SUBCARRIER_SPACING_HZ = 312_500.0
@@ -51,6 +53,12 @@ def channel_freq_hz(channel: int) -> float:
     if 32 <= channel <= 177:
         return 5000e6 + 5e6 * channel
     raise ValueError(f"no WiFi channel {channel}")
+
+
+def phase_jump_step_rad(channel: int) -> float:
+    """The step by which the Intel 5300's receive chains jump in phase across a restart, a retune or
+    (at 2.4 GHz) a packet: pi at 5 GHz (CSI Tool issues #113, #446), pi/2 at 2.4 GHz (issue #6)."""
+    return math.pi / 2 if channel_freq_hz(channel) < 3e9 else math.pi
 
 
 def freq_channel(freq_hz: float) -> int | None:

@@ -1,0 +1,205 @@
+"""Where a tag not yet localized is, from its bearings' candidates over the robot's path.
+
+The Intel 5300's chain phase jumps give each burst several candidate angles (one per jump
+combination, rover.operators.aoa.jumps) that a single burst cannot tell apart: the wrong ones are
+clean plane waves too. Geometry can: only the true candidates of a tag's bearings, seen from the
+robot's successive positions, cross at one point. So the search triangulates pairs of bearings
+(every pair of candidates, from well-separated positions) into hypotheses, scores each against all
+the tag's bearings with each bearing's best candidate (a max-mixture, capped: a bearing no
+candidate of which fits costs the same anywhere), refines the best by Gauss-Newton on its inliers,
+and accepts it only when no hypothesis elsewhere comes close: a tag stays unlocalized rather than
+be guessed. This works whether the jumps happen once per run or at every retune, since each
+bearing picks its own candidate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from rover.geometry import wrap_angle
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    min_bearings: int = 12
+    """bearings a tag needs before it is searched for"""
+    pair_bearings: int = 16
+    """bearings, spread over the history, whose candidate pairs are triangulated into hypotheses"""
+    cap_sigma: float = 3.0
+    """a bearing whose best candidate is further off than this many stds costs cap_sigma^2 (an outlier)"""
+    min_margin: float = 25.0
+    """how much more (in squared stds) the best hypothesis elsewhere must cost: the evidence needed"""
+    min_inliers: float = 0.9
+    """share of the bearings the position must explain"""
+    min_parallax_deg: float = 15.0
+    """spread of the inliers' directions seen from the tag: the robot must have moved around it"""
+    min_range_m: float = 0.3
+    max_range_m: float = 20.0
+    separation_m: float = 0.5
+    """hypotheses closer than this (or a fifth of the range) to the best are the same place"""
+    min_crossing_deg: float = 3.0
+    """two rays more parallel than this do not triangulate"""
+
+
+@dataclass(frozen=True)
+class Found:
+    """A tag's position, the candidate each bearing uses (-1: outlier), and the evidence."""
+
+    position: np.ndarray
+    choice: np.ndarray
+    info: np.ndarray
+    """2x2 information of the position from the inlier bearings (robot positions taken as known)"""
+    margin: float
+    inliers: float
+    parallax_deg: float
+    score: float = math.inf
+    combination: int = -1
+    """the jump combination all its bearings share (-1: each bearing its own)"""
+
+    def clear(self, s: SearchSettings) -> bool:
+        """Whether the evidence settles the position: no rival elsewhere, most bearings agreeing, parallax."""
+        return self.margin >= s.min_margin and self.inliers >= s.min_inliers and self.parallax_deg >= s.min_parallax_deg
+
+
+FREE_MARGIN_FACTOR = 2.0
+"""a position where each bearing picks its own candidate needs this many times the margin: with a
+free choice per bearing, a wrong place finds more ways to fit"""
+STEP_LIMIT_M = 5.0
+"""a Gauss-Newton step longer than this is an unconstrained range, not a refinement"""
+
+
+def _residuals(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray) -> np.ndarray:
+    """(H, n, K) angle residuals in stds of positions q (H, 2) against the candidates (n, K); NaN-padded -> inf."""
+    d = q[:, None, :] - robot[None, :, :]
+    predicted = np.arctan2(d[..., 1], d[..., 0])
+    r = wrap_angle(predicted[:, :, None] - angles[None]) / stds[None]
+    return np.where(np.isfinite(r), r, np.inf)
+
+
+def _score(r: np.ndarray, cap: float) -> np.ndarray:
+    """Per hypothesis: the sum over bearings of the best candidate's capped squared residual."""
+    return np.minimum(np.min(r**2, axis=2), cap**2).sum(axis=1)
+
+
+def _hypotheses(robot: np.ndarray, angles: np.ndarray, s: SearchSettings) -> np.ndarray:
+    """Intersections (H, 2) of candidate rays from pairs of bearings spread over the history."""
+    n, k = angles.shape
+    pick = np.unique(np.linspace(0, n - 1, min(n, s.pair_bearings)).round().astype(int))
+    i, j = np.triu_indices(len(pick), 1)
+    i, j = pick[i], pick[j]
+    a_i = np.repeat(angles[i], k, axis=1)  # (pairs, K*K): candidate a of i with every b of j
+    a_j = np.tile(angles[j], (1, k))
+    u = np.stack([np.cos(a_i), np.sin(a_i)], axis=-1)
+    v = np.stack([np.cos(a_j), np.sin(a_j)], axis=-1)
+    base = (robot[j] - robot[i])[:, None, :]
+    cross = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+    ok = np.abs(cross) >= math.sin(math.radians(s.min_crossing_deg))
+    cross = np.where(ok, cross, 1.0)
+    along_i = (base[..., 0] * v[..., 1] - base[..., 1] * v[..., 0]) / cross
+    along_j = (base[..., 0] * u[..., 1] - base[..., 1] * u[..., 0]) / cross
+    ok &= (along_i >= s.min_range_m) & (along_j >= s.min_range_m)
+    ok &= (along_i <= s.max_range_m) & (along_j <= s.max_range_m) & np.isfinite(along_i + along_j)
+    q = robot[i][:, None, :] + along_i[..., None] * u
+    return q[ok]
+
+
+def _refine(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float, steps: int = 5):
+    """Gauss-Newton on the inliers' best candidates from q; returns q, choice (-1 outlier), info."""
+    for _ in range(steps + 1):
+        r = _residuals(q[None], robot, angles, stds)[0]
+        best = np.argmin(r**2, axis=1)
+        rb = r[np.arange(len(r)), best]
+        inlier = np.abs(rb) < cap
+        d = q[None, :] - robot
+        range2 = np.maximum(np.sum(d**2, axis=1), 1e-6)
+        sb = stds[np.arange(len(r)), best]
+        jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (range2 * sb)[:, None]
+        jac, rb = jac[inlier], rb[inlier]
+        info = jac.T @ jac
+        if inlier.sum() < 2 or np.linalg.cond(info) > 1e12:
+            break
+        step = np.linalg.solve(info, jac.T @ rb)
+        if not np.all(np.isfinite(step)) or np.linalg.norm(step) > STEP_LIMIT_M:
+            break  # rays too parallel to pin the range: the hypothesis stays as triangulated
+        q = q - step
+    return q, np.where(inlier, best, -1), info
+
+
+def by_combination(angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, combination: int):
+    """Each bearing's candidate for one jump combination as a one-candidate set (n, 1); a bearing
+    whose candidate for it was merged into another's keeps all its candidates (it fits either way)."""
+    has = jumps == combination
+    own = has.any(axis=1)
+    index = np.argmax(has, axis=1)
+    rows = np.arange(len(angles))
+    pick_a = np.where(own[:, None], np.nan, angles)
+    pick_s = np.where(own[:, None], 1.0, stds)
+    pick_a[own, 0], pick_s[own, 0] = angles[rows[own], index[own]], stds[rows[own], index[own]]
+    source = np.where(own[:, None], index[:, None], np.arange(angles.shape[1])[None, :])
+    return pick_a, pick_s, source
+
+
+def search(
+    robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings, jumps: np.ndarray | None = None
+) -> Found | None:
+    """The likeliest position of the tag from its bearings: robot positions (n, 2), world-frame
+    candidate angles and their stds (n, K), NaN where a bearing has fewer candidates; None without
+    enough bearings or rays that cross. `Found.clear` says whether the evidence settles it.
+
+    With the candidates' jump combinations (n, K), a combination held by the tag's channel all run
+    long is tried first, one hypothesis family per combination (far fewer ways for a wrong place
+    to fit); failing that, each bearing picks its own candidate (a jump at any retune)."""
+    n = len(robot_xy)
+    if n < s.min_bearings:
+        return None
+    held: list[Found] = []
+    if jumps is None:
+        jumps = np.full(angles.shape, -1)
+    for combination in np.unique(jumps[jumps >= 0]):
+        picked_a, picked_s, source = by_combination(angles, stds, jumps, int(combination))
+        one = _search(robot_xy, picked_a, picked_s, s)
+        if one is not None:
+            choice = np.where(one.choice >= 0, source[np.arange(n), np.maximum(one.choice, 0)], -1)
+            held.append(replace(one, choice=choice, combination=int(combination)))
+    if held:
+        best = min(held, key=lambda f: f.score)
+        reach = _reach(robot_xy, best.position, s)
+        rivals = [f.score - best.score for f in held if np.linalg.norm(f.position - best.position) > reach]
+        best = replace(best, margin=min([best.margin, *rivals]))
+        if best.clear(s):
+            return best
+    free = _search(robot_xy, angles, stds, s)
+    if free is not None:
+        free = replace(free, margin=free.margin / FREE_MARGIN_FACTOR)
+    return free if not held or (free is not None and free.clear(s)) else best
+
+
+def _search(robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings) -> Found | None:
+    q = _hypotheses(robot_xy, angles, s)
+    if len(q) == 0:
+        return None
+    score = _score(_residuals(q, robot_xy, angles, stds), s.cap_sigma)
+    position, choice, info = _refine(q[np.argmin(score)], robot_xy, angles, stds, s.cap_sigma)
+    best = float(_score(_residuals(position[None], robot_xy, angles, stds), s.cap_sigma)[0])
+    elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(robot_xy, position, s)]
+    margin = float(elsewhere.min() - best) if len(elsewhere) else math.inf
+    inliers = float(np.mean(choice >= 0))
+    seen = position[None, :] - robot_xy[choice >= 0]
+    directions = np.arctan2(seen[:, 1], seen[:, 0])
+    parallax = math.degrees(_spread(directions)) if len(directions) else 0.0
+    return Found(position, choice, info, margin, inliers, parallax, best)
+
+
+def _reach(robot_xy: np.ndarray, position: np.ndarray, s: SearchSettings) -> float:
+    """How far from a position another hypothesis must be to be a different place."""
+    return max(s.separation_m, 0.2 * float(np.median(np.linalg.norm(robot_xy - position, axis=1))))
+
+
+def _spread(angles: np.ndarray) -> float:
+    """Smallest arc (rad) that holds all the angles."""
+    a = np.sort(np.mod(angles, 2 * math.pi))
+    gaps = np.diff(np.concatenate([a, [a[0] + 2 * math.pi]]))
+    return float(2 * math.pi - gaps.max())
