@@ -277,6 +277,52 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_aoa(args: argparse.Namespace) -> int:
+    """Angles of arrival from a bare CSI Tool log: one row per burst, every candidate with its power."""
+    from rover.formats.atomic_file import write_aside
+    from rover.formats.bag import check_output
+    from rover.formats.intel5300 import read_dat
+    from rover.formats.rig import load_rig
+    from rover.formats.text import read_text
+    from rover.operators.aoa.bare_log import log_bursts, with_calibration
+
+    out = check_output(args.csv, force=args.force) if args.csv else None  # before any work
+    rig = load_rig(args.setup)
+    if args.calibration:
+        rig = with_calibration(rig, read_text(Path(args.calibration)), args.calibration)
+    channel = args.channel if args.channel is not None else rig.receiver_channel
+    if channel is None:
+        raise BadInput(f"{args.setup}: give --channel N, the channel the log was recorded on (or receiver.channel)")
+    source = Path(args.log)
+    if not source.is_file():
+        raise BadInput(f"{source}: {'is a directory' if source.is_dir() else 'no such file'}")
+    try:
+        records = read_dat(source)
+    except OSError as exc:
+        raise BadInput(f"{source}: cannot read: {exc.strerror or exc}") from None
+    try:
+        bursts = log_bursts(records, rig, channel, args.burst)
+    except BadInput as exc:
+        raise BadInput(f"{source}: {exc}") from None
+    lines = ["time_s,packets,angle_deg,std_deg,quality,candidates_deg,candidate_powers"]
+    print(f"{source.name}: {len(records.nrx)} records, {len(bursts)} bursts of {args.burst} packets, channel {channel}")
+    print(f"{'time s':>8} {'packets':>7} {'angle deg':>9} {'std deg':>7}  candidates deg (power)")
+    for b in bursts:
+        t = (b.header.stamp.sec * 1_000_000_000 + b.header.stamp.nanosec) / 1e9
+        angles = [math.degrees(a) for a in b.candidate_angles_rad]
+        powers = list(b.candidate_powers)
+        shown = "  ".join(f"{a:6.1f} ({p:.2f})" for a, p in zip(angles, powers, strict=True))
+        print(f"{t:8.3f} {b.packets:7d} {math.degrees(b.angle_rad):9.1f} {math.degrees(b.std_rad):7.1f}  {shown}")
+        lines.append(
+            f"{t:.6f},{b.packets},{math.degrees(b.angle_rad):.2f},{math.degrees(b.std_rad):.2f},{b.quality},"
+            f"{';'.join(f'{a:.2f}' for a in angles)},{';'.join(f'{p:.3f}' for p in powers)}"
+        )
+    if out is not None:
+        write_aside(out, lambda partial: partial.write_text("\n".join(lines) + "\n"))
+        print(f"wrote {out}")
+    return 0
+
+
 def _per_log(values: list[Any] | None, logs: list[str], option: str) -> list[Any]:
     """One value of an option per CSI log: given once for all of them, or once per log in order."""
     if not values:
@@ -413,6 +459,17 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _positive_int(text: str) -> int:
+    """--burst: a whole number from 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a whole number from 1, got {text!r}")
+    return value
+
+
 def _seed(text: str) -> int:
     """--seed: a whole number from 0."""
     try:
@@ -506,6 +563,16 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="also write the receiver.phase_offsets_rad block to this YAML file")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=cmd_calibrate)
+
+    p = command("aoa", help="angles of arrival from a bare CSI Tool log (no robot): every candidate per burst")
+    p.add_argument("log", metavar="LOG.dat", help="a CSI Tool log (log_to_file output)")
+    p.add_argument("--setup", required=True, help="rig file: the receiver's antennas (and channel, calibration)")
+    p.add_argument("--calibration", help="a `rover calibrate --out` file: its phase offsets replace the setup's")
+    p.add_argument("--channel", type=int, help="the channel the log was recorded on (default: receiver.channel)")
+    p.add_argument("--burst", type=_positive_int, default=50, help="packets per burst (default 50)")
+    p.add_argument("--csv", help="also write the rows to this CSV file")
+    p.add_argument("--force", action="store_true", help="replace an existing --csv file")
+    p.set_defaults(func=cmd_aoa)
 
     p = command("info", help="what a dataset holds, like `ros2 bag info`")
     p.add_argument("path")

@@ -30,7 +30,7 @@ from rover.operator import Emit, In, Operator, Out
 from rover.operators.aoa.array import ArrayResponse, array_axis, check_rig_geometry, field_mask, mirror_into_field
 from rover.operators.aoa.jumps import jump_phases
 from rover.operators.aoa.music import MAX_STD_RAD, JointMusic, Peaks, burst_std, check_energy, choose_direct
-from rover.pipeline.params import Checked, Fraction, NonNegativeFloat, PositiveFloat, PositiveInt
+from rover.pipeline.params import Checked, Fraction, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
 
 log = logging.getLogger("rover.aoa")
 
@@ -76,6 +76,8 @@ class AoaParams(Checked):
     """give a candidate per combination of the chains' phase jumps (off: trust the calibration as is)"""
     merge_deg: PositiveFloat = 2.0
     """candidates of different jump combinations closer than this are one (the stronger is kept)"""
+    burst_packets: NonNegativeInt = 0
+    """end a burst after this many packets (0: bursts end with the tag's dwell, by time only)"""
 
 
 @dataclass(frozen=True)
@@ -166,6 +168,8 @@ class Aoa(Operator):
             ):
                 yield from self._flush()
         self.burst.append((msg, stamp_ns))
+        if len(self.burst) == self.params.burst_packets:
+            yield from self._flush()
 
     def _flush(self):
         burst, self.burst = self.burst, []

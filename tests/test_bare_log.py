@@ -1,0 +1,78 @@
+"""`rover aoa` and operators/aoa/bare_log.py: AoA on a bare CSI Tool log, on the real LGTM captures."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+
+import numpy as np
+import pytest
+from conftest import reference_data
+
+from rover.cli.commands import main
+from rover.formats.intel5300 import read_dat
+from rover.formats.rig import rig_from_text
+from rover.operators.aoa.bare_log import log_bursts, log_stamps_ns
+
+LGTM_RIG = "receiver:\n  antenna_positions_m: [[0, 0], [0, -0.1], [0, -0.2]]\n  channel: 64\n"
+
+
+def rover(*argv: str) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = main(list(argv))
+    return status, out.getvalue(), err.getvalue()
+
+
+def test_log_stamps_unwrap_the_nics_clock():
+    low = np.array([2**32 - 2_000, 2**32 - 1_000, 500, 1_500, 2**32 - 10, 5], dtype=np.uint32)
+    assert log_stamps_ns(low).tolist() == [
+        0,
+        1_000_000,
+        2_500_000,
+        3_500_000,
+        2**32 * 1000 * 2 - 2**32 * 1000 + 1_990_000,
+        2**32 * 1000 + 2_005_000,
+    ]
+
+
+def test_bursts_of_a_capture_hold_every_jump_combination():
+    """A ULA's three chains: four combinations of pi jumps, each a candidate unless two coincide."""
+    path = reference_data() / "csi" / "lgtm" / "lgtm-monitor.dat--1m-20-degrees--laptop-1--test-1.dat"
+    records = read_dat(path)
+    bursts = log_bursts(records, rig_from_text(LGTM_RIG), 64, 100)
+    assert sum(b.packets for b in bursts) == int(np.sum(records.nrx == 3))
+    assert all(1 <= len(b.candidate_angles_rad) <= 4 and b.chosen == -1 for b in bursts)
+    assert all(b.angle_rad == b.candidate_angles_rad[0] for b in bursts)
+    assert all(abs(math.degrees(a)) <= 90.0 + 1e-9 for b in bursts for a in b.candidate_angles_rad)  # in front
+
+
+def test_rover_aoa_runs_on_every_lgtm_capture(tmp_path):
+    setup = tmp_path / "rig.yaml"
+    setup.write_text(LGTM_RIG)
+    captures = sorted((reference_data() / "csi" / "lgtm").glob("*.dat"))
+    assert len(captures) == 50
+    for path in captures:
+        status, out, err = rover("-q", "aoa", str(path), "--setup", str(setup), "--burst", "200")
+        assert status == 0, (path.name, err)
+        assert "bursts of 200 packets" in out
+    csv = tmp_path / "out.csv"
+    assert rover("-q", "aoa", str(captures[0]), "--setup", str(setup), "--csv", str(csv))[0] == 0
+    rows = csv.read_text().splitlines()
+    assert rows[0].startswith("time_s,packets,angle_deg") and len(rows) > 2
+
+
+@pytest.mark.parametrize(
+    "rig, extra, message",
+    [
+        ("receiver:\n  antenna_positions_m: [[0, 0], [0, -0.1], [0, -0.2]]\n", [], "give --channel N"),
+        (LGTM_RIG, ["--calibration", "missing.yaml"], "missing.yaml"),
+    ],
+)
+def test_bad_input_is_one_line_and_status_2(tmp_path, rig, extra, message):
+    setup = tmp_path / "rig.yaml"
+    setup.write_text(rig)
+    path = reference_data() / "csi" / "lgtm" / "lgtm-monitor.dat--1m-0-degrees--laptop-1--test-1.dat"
+    status, _out, err = rover("-q", "aoa", str(path), "--setup", str(setup), *extra)
+    assert status == 2 and message in err and len(err.strip().splitlines()) == 1, err
