@@ -299,3 +299,107 @@ def test_near_ambiguous_directions_show_in_the_std():
     (c,) = estimate(synthetic([(math.radians(clear), 20e-9, 1.0)], snr_db=40, seed=3))
     assert d.quality == QUALITY_AMBIGUOUS and c.quality == QUALITY_GOOD
     assert d.std_rad > 1.1 * c.std_rad
+
+
+def test_40_mhz_records_are_decoded_and_used():
+    """No real 40 MHz log is at hand, so simulated ones: a direct path and a later reflection at the
+    Ng = 4 subcarriers (-58..58 step 4), encoded as CSI Tool records with the HT40 rate flag, decoded
+    by the real decoder; each burst's angle is the direct path's, from the 40 MHz estimator."""
+    from rover.formats.intel5300 import RecordHeader, encode_record
+    from rover.formats.wifi import RATE_HT40, SUBCARRIER_SPACING_HZ, SUBCARRIERS_40MHZ
+
+    channel = 157
+    d = SPEED_OF_LIGHT_M_S / channel_freq_hz(channel) / 2
+    antennas = np.array([[0.0, 0.0], [d, 0.0], [d / 2, -d * math.sqrt(3) / 2]])
+    freqs = channel_freq_hz(channel) + SUBCARRIERS_40MHZ * SUBCARRIER_SPACING_HZ
+    rng = np.random.default_rng(7)
+    rig = rig_from_text(
+        "receiver:\n  antenna_positions_m: " + str(antennas.tolist()) + f"\n  channel: {channel}\n", "rig"
+    )
+    packets, truths = [], []
+    for burst in range(24):
+        direct, echo = rng.uniform(-math.pi, math.pi, 2)
+        truths.append(direct)
+        for k in range(10):
+            h = np.zeros((30, 3), complex)
+            for angle, delay_s, gain in ((direct, 0.0, 1.0), (echo, 40e-9, 0.6)):
+                lead = antennas @ np.array([math.cos(angle), math.sin(angle)]) / SPEED_OF_LIGHT_M_S
+                h += gain * np.exp(-2j * np.pi * freqs[:, None] * (delay_s - lead[None, :]))
+            sto_s, common = rng.uniform(0, 100e-9), rng.uniform(0, 2 * math.pi)
+            h *= np.exp(-2j * np.pi * (freqs - freqs.mean())[:, None] * sto_s + 1j * common)
+            h += 0.03 * (rng.standard_normal(h.shape) + 1j * rng.standard_normal(h.shape))
+            h = np.rint(h * 60 / np.abs(np.concatenate([h.real, h.imag])).max())
+            record = encode_record(
+                RecordHeader(k, k, (40, 40, 40), -92, 30, 0b100100, 0x4101 | RATE_HT40), h[:, :, None]
+            )
+            decoded = decode_bfee([record], scaled=False)
+            assert decoded.rate[0] & RATE_HT40
+            c = decoded.csi[0, :, :3, :1]
+            stamp = burst * 1_000_000_000 + k * 1_000_000  # bursts a second apart
+            packets.append(
+                make(
+                    "rover_msgs/msg/Csi",
+                    header=header(stamp, "base_link"),
+                    channel=channel,
+                    nrx=3,
+                    ntx=1,
+                    rate=int(decoded.rate[0]),
+                    csi_real=c.real.astype(np.float32).ravel(),
+                    csi_imag=c.imag.astype(np.float32).ravel(),
+                )
+            )
+    op = Aoa(AoaParams(jumps=False))
+    out = [
+        e.msg
+        for e in run_operator(op, {"setup": [make("rover_msgs/msg/RigSetup", setup_yaml=rig.text)], "csi": packets})
+    ]
+    assert list(op.estimators) == [(channel, True)]
+    errors = np.array([angle_error_deg(a.angle_rad, t) for a, t in zip(out, truths, strict=True)])
+    assert np.mean(errors < 3.0) >= 0.9, np.round(errors, 1)
+
+
+def test_packets_whose_chains_jump_at_2_4_ghz_are_aligned_before_averaging():
+    """At 2.4 GHz each chain jumps by a multiple of pi/2 from packet to packet (CSI Tool issue #6):
+    the burst's packets are brought to one combination, so a candidate holds the true angle."""
+    from rover.operators.aoa.jumps import jump_phases
+    from rover.operators.aoa.operator import align_packets
+
+    channel = 6
+    d = SPEED_OF_LIGHT_M_S / channel_freq_hz(channel) / 2
+    antennas = np.array([[0.0, 0.0], [d, 0.0], [d / 2, -d * math.sqrt(3) / 2]])
+    freqs = subcarrier_freqs_hz(channel)
+    rng = np.random.default_rng(11)
+    rig = rig_from_text("receiver:\n  antenna_positions_m: " + str(antennas.tolist()) + f"\n  channel: {channel}\n")
+    packets, truths, recovered = [], [], []
+    undo = np.exp(-1j * jump_phases(channel, 3))
+    for burst in range(20):
+        angle = rng.uniform(-math.pi, math.pi)
+        truths.append(angle)
+        lead = antennas @ np.array([math.cos(angle), math.sin(angle)]) / SPEED_OF_LIGHT_M_S
+        steps = rng.integers(0, 4, (10, 3))
+        burst_csi = []
+        for k in range(10):
+            h = np.exp(2j * np.pi * freqs[:, None] * lead[None, :]) * np.exp(1j * math.pi / 2 * steps[k])[None, :]
+            h = h * np.exp(1j * rng.uniform(0, 2 * math.pi)) + 0.05 * rng.standard_normal((30, 3))
+            burst_csi.append(h)
+            packets.append(
+                make(
+                    "rover_msgs/msg/Csi",
+                    header=header(burst * 1_000_000_000 + k * 1_000_000, "base_link"),
+                    channel=channel,
+                    nrx=3,
+                    ntx=1,
+                    csi_real=h.real.astype(np.float32).ravel(),
+                    csi_imag=h.imag.astype(np.float32).ravel(),
+                )
+            )
+        aligned = align_packets(np.array(burst_csi), undo)
+        relative = aligned[:, :, 1:] / aligned[:, :, :1] / (aligned[0, :, 1:] / aligned[0, :, :1])[None]
+        recovered.append(np.abs(np.angle(relative.mean(axis=1))).max())  # 0 when every packet matches the first
+    assert np.mean(np.array(recovered) < 0.3) >= 0.95
+    out = [
+        e.msg
+        for e in run_operator(Aoa(), {"setup": [make("rover_msgs/msg/RigSetup", setup_yaml=rig.text)], "csi": packets})
+    ]
+    nearest = [min(angle_error_deg(c, t) for c in a.candidate_angles_rad) for a, t in zip(out, truths, strict=True)]
+    assert np.mean(np.array(nearest) < 3.0) >= 0.9, np.round(nearest, 1)

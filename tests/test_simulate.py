@@ -8,14 +8,16 @@ import signal
 
 import numpy as np
 import pytest
+import yaml
 from conftest import popen_rover, read_bag, run_rover, stop_while_writing
 
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
-from rover.datasets.scenario import load_scenario
-from rover.datasets.simulate import antenna_positions, simulate
+from rover.datasets.scenario import Receiver, load_scenario
+from rover.datasets.simulate import antenna_positions, chain_jumps, simulate
 from rover.errors import BadInput, SpecError
+from rover.formats.bag import read_metadata
 from rover.formats.intel5300 import RecordHeader, decode_bfee, encode_record
-from rover.formats.wifi import SPEED_OF_LIGHT_M_S, subcarrier_freqs_hz
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, phase_jump_step_rad, subcarrier_freqs_hz
 from rover.geometry import wrap_angle, yaw_from_quaternion
 from rover.messages import deserialize
 
@@ -192,3 +194,122 @@ def test_simulating_onto_the_scenario_file_is_refused(tmp_path, capsys):
         f"rover: error: {scenario}: is also the scenario file; simulating onto it would destroy it"
     ]
     assert scenario.read_text() == "room: {size_m: [6.0, 4.0]}\n"
+
+
+# -- the chains' phase jumps (issue 14) -------------------------------------------------------------
+
+TINY = {
+    "trajectory.laps": "1",
+    "trajectory.waypoints_m": "[[4.0, 0.755], [4.0, 2.5]]",
+    "trajectory.stationary_s": "0.5",
+    "trajectory.speed_m_s": "0.6",
+}
+"""a short run of the paper's room: every tag channel heard, many sweeps"""
+JUMP_VARIANTS = {
+    "none": {"receiver.jumps_per_run": "false"},
+    "run": {"receiver.jumps_per_run": "true"},
+    "retune": {"receiver.jumps_per_run": "false", "receiver.jumps_per_retune": "1.0"},
+}
+
+
+@pytest.fixture(scope="module")
+def jump_runs(tmp_path_factory):
+    """The same seed without jumps, with a jump per run, and with one at every retune."""
+    root = tmp_path_factory.mktemp("jumps")
+    out = {}
+    for name, overrides in JUMP_VARIANTS.items():
+        path = root / f"{name}.mcap"
+        simulate(load_scenario("paper", {**TINY, **overrides}), 1, path)
+        messages = read_bag(path)
+        frames = [deserialize(d, "rover_msgs/msg/CsiFrame") for t, _s, d in messages if t == "/csi"]
+        csi = decode_bfee([bytes(f.bfee) for f in frames], scaled=False).csi[:, :, :, 0]
+        jumps = yaml.safe_load(read_metadata(path)["rover.simulation"]["yaml"])["phase_jumps"]
+        out[name] = (messages, csi, np.array([f.channel for f in frames]), jumps)
+    return out
+
+
+def chain_signs(csi: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per packet and chain, the sign (+-1) that best maps the reference CSI onto `csi`, and per
+    packet the power left over once it is applied, relative to the reference's."""
+    sign = np.where(np.real(np.einsum("nfm,nfm->nm", csi, reference.conj())) < 0, -1, 1)
+    left = np.sum(np.abs(csi - sign[:, None, :] * reference) ** 2, axis=(1, 2))
+    return sign, left / np.sum(np.abs(reference) ** 2, axis=(1, 2))
+
+
+def test_a_jump_per_run_turns_chains_by_pi_and_changes_nothing_else(jump_runs):
+    plain_messages, plain, channels, plain_jumps = jump_runs["none"]
+    messages, jumped, jumped_channels, jumps = jump_runs["run"]
+    for topic in ("/imu/data", "/odom", "/groundtruth/pose", "/groundtruth/aoa", "/groundtruth/tags"):
+        assert [(s, d) for t, s, d in messages if t == topic] == [(s, d) for t, s, d in plain_messages if t == topic]
+    assert [s for t, s, _ in messages if t == "/csi"] == [s for t, s, _ in plain_messages if t == "/csi"]
+    np.testing.assert_array_equal(jumped_channels, channels)
+    assert jumps["per_run"] is True and plain_jumps["per_run"] is False
+    tag_channels = {t.channel for t in load_scenario("paper").tags}
+    assert set(jumps["run_steps"]) == set(plain_jumps["run_steps"]) == tag_channels
+    assert set(np.unique(channels).tolist()) == tag_channels, "every tag is heard in this run"
+    sign, left = chain_signs(jumped, plain)
+    # the receiver noise is drawn alike but added after the chains' phases, so what is left is the
+    # difference of two noises (4 / SNR of the power) and the AGC's rescaling, not just rounding
+    snr_db = load_scenario("paper").receiver.snr_db[0]
+    assert left.max() < 2 * 4 * 10 ** (-snr_db / 10)
+    flipped = 0
+    for channel, steps in jumps["run_steps"].items():
+        assert len(steps) == 3 and set(steps) <= {0, 1}, "a multiple of pi at 5 GHz"
+        assert plain_jumps["run_steps"][channel] == [0, 0, 0]
+        mine = channels == channel
+        np.testing.assert_array_equal(sign[mine], np.broadcast_to((-1) ** np.array(steps), (mine.sum(), 3)))
+        flipped += sum(steps)
+    assert flipped > 0, "this seed turns some chain (else the test shows nothing)"
+
+
+def test_jumps_at_every_retune_change_between_windows_of_a_channel(jump_runs):
+    plain_messages, plain, channels, _ = jump_runs["none"]
+    _, jumped, _, jumps = jump_runs["retune"]
+    assert jumps["per_retune"] == 1.0 and jumps["per_run"] is False
+    stamps = np.array([s for t, s, _ in plain_messages if t == "/csi"])
+    assert np.all(np.diff(stamps) >= 0)
+    # a window: consecutive packets on one channel (the next window of a channel is a sweep later)
+    start = np.concatenate([[True], (channels[1:] != channels[:-1]) | (np.diff(stamps) > 100e6)])
+    window = np.cumsum(start) - 1
+    sign, left = chain_signs(jumped, plain)
+    assert left.max() < 2 * 4 * 10 ** (-load_scenario("paper").receiver.snr_db[0] / 10)
+    patterns: dict[int, list[tuple[int, ...]]] = {}
+    for w in range(window[-1] + 1):
+        mine = window == w
+        assert len(np.unique(sign[mine], axis=0)) == 1, "the chains hold their phase within a window"
+        patterns.setdefault(int(channels[mine][0]), []).append(tuple(sign[mine][0]))
+    assert jumps["retunes_redrawn"] >= window[-1] + 1
+    for channel, seen in patterns.items():
+        assert len(seen) >= 20
+        assert len(set(seen)) > 1, f"channel {channel}: the multiples vary between its windows"
+        changes = np.mean([a != b for a, b in zip(seen[:-1], seen[1:], strict=True)])
+        assert changes > 0.5, "8 equally likely patterns: most retunes change it"
+
+
+def test_chain_jumps_are_multiples_of_the_channel_step():
+    """The jump drawn for each packet: pi steps at 5 GHz, pi/2 at 2.4 GHz (all four levels drawn),
+    held all run per channel; per packet, a fresh jump for that packet only."""
+    windows = np.repeat(np.arange(40), 5)
+    window_channel = np.tile([6, 149], 20)
+    levels: dict[int, set[int]] = {6: set(), 149: set()}
+    for seed in range(10):
+        j = chain_jumps(Receiver(jumps_per_run=True), seed, windows, window_channel, 3)
+        assert j.retunes_redrawn == 0 and set(j.run_steps) == {6, 149}
+        for channel in (6, 149):
+            step = phase_jump_step_rad(channel)
+            mine = window_channel[windows] == channel
+            multiples = j.phase_rad[mine] / step
+            np.testing.assert_allclose(multiples, np.round(multiples), atol=1e-9)
+            assert len(np.unique(np.mod(np.round(multiples), 2 * np.pi / step), axis=0)) == 1, "once per run"
+            np.testing.assert_array_equal(np.mod(np.round(multiples[0]), round(2 * np.pi / step)), j.run_steps[channel])
+            levels[channel] |= set(j.run_steps[channel])
+    assert levels == {6: {0, 1, 2, 3}, 149: {0, 1}}
+    off = chain_jumps(Receiver(), 3, windows, window_channel, 3)
+    assert np.all(off.phase_rad == 0) and all(v == [0, 0, 0] for v in off.run_steps.values())
+    packet = chain_jumps(Receiver(jumps_per_packet=1.0), 3, windows, window_channel, 3)
+    assert packet.retunes_redrawn == 0 and all(v == [0, 0, 0] for v in packet.run_steps.values())
+    steps = np.array([phase_jump_step_rad(int(c)) for c in window_channel[windows]])[:, None]
+    levels_of = np.round(2 * np.pi / steps)
+    multiples = np.mod(np.round(packet.phase_rad / steps), levels_of)
+    within = [len(np.unique(multiples[windows == w], axis=0)) for w in range(40)]
+    assert np.mean(np.array(within) > 1) > 0.9, "per packet: the jumps differ within a window"

@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from slam_scenes import angles, estimate, scene, tag_errors
+from slam_scenes import Scene, angles, edge, estimate, scene, tag_errors, true_angle
+from test_jumps import burst_candidates
 
-from rover.operators.slam.sliding_window import WindowSettings
+from rover.operators.slam.sliding_window import SEARCH_HISTORY, SlidingWindow, WindowSettings
 
 
 def test_noise_free_matches_truth_to_millimetres():
@@ -62,3 +63,128 @@ def test_ranges_are_not_biased_short_at_10_degrees():
         true = np.linalg.norm(sc.tags[None] - sc.position[:, None], axis=2).mean(axis=0)
         ratios.append(est / true)
     assert np.mean(ratios) > 0.95
+
+
+# -- bearings with phase-jump candidates (issue 14) ---------------------------------------------------
+
+JUMP_STD = math.radians(3.0)
+
+
+def jump_bearing(sc: Scene, k: int, carried: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Robot-frame candidates (1, 4) of tag 0 at epoch k, one per jump combination undone (shuffled),
+    from a noisy burst whose chains carry `carried` (tests/test_jumps.py), and their combinations."""
+    jumps = rng.permutation(4)[None, :]
+    return burst_candidates(true_angle(sc, k, 0), carried, jumps, JUMP_STD, rng), jumps
+
+
+def run_with_jumps(carried: np.ndarray, seed: int = 0, update_every: int = 2):
+    """A 15 s arc with tag 1 (jump candidates) and tag 2 (one angle, no jumps) heard in turn; the
+    window and, after each update, tag 1's (active, covariance, position, bearings waiting)."""
+    sc = scene(seconds=15.0, tags=((3.0, 2.0), (-1.0, 2.5)))
+    rng = np.random.default_rng(seed)
+    w = SlidingWindow(WindowSettings(window=30))
+    trace = []
+    for k in range(len(sc.t)):
+        if k % 2 == 0:
+            candidates, jumps = jump_bearing(sc, k, int(carried[k]), rng)
+            tag_id = 1
+        else:
+            candidates, jumps = np.array([[true_angle(sc, k, 1) + rng.normal(0.0, JUMP_STD)]]), None
+            tag_id = 2
+        stds = np.full(candidates.shape, JUMP_STD)
+        w.add_epoch(
+            int(sc.t[k] * 1e9), float(sc.yaw[k]), [tag_id], candidates, stds, edge(sc, k) if k else None, jumps=jumps
+        )
+        if k % update_every == 0 or k == len(sc.t) - 1:
+            w.update()
+            t = w.tag_ids.index(1)
+            trace.append(
+                (w.active[t], w.tag_covariance[t].copy(), w.tag_positions()[t].copy(), len(w.history.get(t, [])))
+            )
+    return sc, w, trace
+
+
+def window_choices(w: SlidingWindow, slot: int) -> tuple[np.ndarray, np.ndarray]:
+    """The jump combination of the candidate each of the tag's bearings in the window uses now, and
+    the index of its epoch in the window."""
+    used, where = [], []
+    for k, e in enumerate(w.epochs):
+        for j in np.flatnonzero(e.tags == slot):
+            used.append(e.candidate_jumps[j, e.choice[j]])
+            where.append(k)
+    return np.array(used), np.array(where)
+
+
+def test_a_tag_with_jump_candidates_waits_for_the_search_then_locks_its_combination():
+    """Once-per-run jumps: the tag's bearings are not used (its covariance stays the prior, its
+    estimate its first guess) until the search has found it; then it is used, lands near the
+    truth, and the max-mixture settles on the combination the chains carry."""
+    carried = 3
+    sc, w, trace = run_with_jumps(np.full(150, carried))
+    t, other = w.tag_ids.index(1), w.tag_ids.index(2)
+    assert w.active[other], "a tag with one candidate per bearing is used from the start"
+    waiting = [row for row in trace if not row[0]]
+    assert 0 < len(waiting) < len(trace), "the tag waits, and is found before the end"
+    prior = WindowSettings().tag_prior_std_m ** 2 * np.eye(2)
+    for _, cov, position, _ in waiting:
+        np.testing.assert_allclose(cov, prior, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(position, waiting[0][2], rtol=0, atol=1e-9)
+    assert [row[3] for row in waiting] == sorted(row[3] for row in waiting)
+    assert waiting[-1][3] >= w.search.min_bearings
+    assert all(row[0] for row in trace[len(waiting) :]), "once found, used for good"
+    assert [i for i, _ in w.found] == [1] and w.found[0][1].combination == carried
+    # a single 3 deg bearing at 3 m is 0.16 m off sideways: dozens over the arc do better
+    assert np.linalg.norm(w.tag_positions()[t] - sc.tags[0]) < 0.16
+    assert w.locked(t) == carried
+    assert max(w.jump_counts[t].values()) == w.jump_counts[t][carried]
+    used, _ = window_choices(w, t)
+    assert len(used) > 10 and np.mean(used == carried) >= 0.9
+    assert w.observable()[t]
+
+
+def test_a_tag_whose_jumps_change_at_every_retune_is_found_but_never_locked():
+    carried = np.random.default_rng(11).integers(0, 4, 150)
+    sc, w, trace = run_with_jumps(carried, seed=1)
+    t = w.tag_ids.index(1)
+    assert not trace[0][0] and trace[-1][0]
+    assert w.found[0][1].combination == -1, "no combination is shared by its bearings"
+    assert np.linalg.norm(w.tag_positions()[t] - sc.tags[0]) < 0.16
+    assert w.locked(t) is None
+    used, where = window_choices(w, t)
+    epoch_index = {e.stamp_ns: round(e.stamp_ns / 1e8) for e in w.epochs}
+    truth = carried[[epoch_index[w.epochs[k].stamp_ns] for k in where]]
+    assert len(used) > 10 and np.mean(used == truth) >= 0.9, "each bearing picks the combination it carries"
+
+
+def test_a_tag_waiting_longer_than_the_search_history_is_still_searched():
+    """The robot stands still for more bearings of the tag than the search keeps (no parallax: not
+    found), then drives; the next search must still happen and find it."""
+    still_s = (SEARCH_HISTORY + 50) * 0.1
+    drive = scene(seconds=15.0, tags=((3.0, 2.0),))
+    n = int(round(still_s / 0.1))
+    sc = Scene(
+        np.concatenate([np.arange(n) * 0.1, still_s + drive.t]),
+        np.concatenate([np.zeros((n, 2)), drive.position]),
+        np.concatenate([np.zeros((n, 2)), drive.velocity]),
+        np.concatenate([np.zeros(n), drive.yaw]),
+        drive.tags,
+    )
+    rng = np.random.default_rng(2)
+    w = SlidingWindow(WindowSettings(window=10))
+    for k in range(len(sc.t)):
+        candidates, jumps = jump_bearing(sc, k, 1, rng)
+        w.add_epoch(
+            int(sc.t[k] * 1e9),
+            float(sc.yaw[k]),
+            [1],
+            candidates,
+            np.full(candidates.shape, JUMP_STD),
+            edge(sc, k) if k else None,
+            jumps=jumps,
+        )
+        if k < n and k % 10 == 0:
+            w.update()  # searched while still: nothing settles
+            assert not w.active[0]
+    w.update()  # one search that sees the whole drive
+    assert w.active[0] and w.found[0][1].combination == 1
+    assert np.linalg.norm(w.tag_positions()[0] - sc.tags[0]) < 0.16

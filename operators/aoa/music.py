@@ -29,8 +29,6 @@ from rover.operators.aoa.array import ArrayResponse, steering
 if TYPE_CHECKING:
     from rover.operators.aoa.operator import AoaParams
 
-RUN_STEP = 2
-"""Subcarrier index step inside an evenly spaced run (625 kHz at 20 MHz)."""
 NOISE_FACTOR = 10.0
 """An eigenvalue counts as a path when it is this many times the noise level (median of the lower half)..."""
 PATH_FLOOR = 10**-2.5
@@ -40,9 +38,14 @@ MAX_STD_RAD = math.pi
 """an angle known to be nowhere in particular"""
 
 
+def run_step(indices: np.ndarray) -> int:
+    """Subcarrier index step inside an evenly spaced run: 2 at 20 MHz (625 kHz), 4 at 40 MHz (1.25 MHz)."""
+    return int(np.bincount(np.diff(indices)).argmax())  # the commonest step (20 MHz has a few odd ones at DC)
+
+
 def even_runs(indices: np.ndarray) -> list[np.ndarray]:
-    """Positions of the maximal runs of subcarriers spaced RUN_STEP apart."""
-    breaks = np.flatnonzero(np.diff(indices) != RUN_STEP) + 1
+    """Positions of the maximal runs of subcarriers spaced `run_step` apart."""
+    breaks = np.flatnonzero(np.diff(indices) != run_step(indices)) + 1
     return [run for run in np.split(np.arange(len(indices)), breaks) if len(run) > 1]
 
 
@@ -68,17 +71,18 @@ class JointMusic:
         delay_step_s: float = 10e-9,
         max_paths: int = 4,
         refine_steps: int = 8,
+        subcarriers: np.ndarray = SUBCARRIERS_20MHZ,
     ):
         self.antennas = np.asarray(antennas_m, dtype=np.float64)
         self.channel = channel
         self.center_hz = channel_freq_hz(channel)
-        self.offsets_hz = SUBCARRIERS_20MHZ * SUBCARRIER_SPACING_HZ
-        runs = even_runs(SUBCARRIERS_20MHZ)
+        self.offsets_hz = subcarriers * SUBCARRIER_SPACING_HZ
+        runs = even_runs(subcarriers)
         self.windows = np.array([run[i : i + window] for run in runs for i in range(len(run) - window + 1)])
         if len(self.windows) == 0:
             raise ValueError(f"smoothing window {window} is longer than every evenly spaced run of subcarriers")
         self.window = window
-        self.step_hz = RUN_STEP * SUBCARRIER_SPACING_HZ
+        self.step_hz = run_step(subcarriers) * SUBCARRIER_SPACING_HZ
         self.max_paths = max_paths
         self.angles = np.radians(np.arange(-180.0, 180.0, angle_step_deg))
         self.delays = np.arange(delay_range_s[0], delay_range_s[1] + delay_step_s / 2, delay_step_s)

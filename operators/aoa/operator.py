@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from rover.formats.rig import Rig, RigInput
+from rover.formats.wifi import RATE_HT40, SUBCARRIERS_20MHZ, SUBCARRIERS_40MHZ, phase_jump_step_rad
 from rover.geometry import wrap_angle
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
@@ -75,7 +76,10 @@ class AoaParams(Checked):
     jumps: bool = True
     """give a candidate per combination of the chains' phase jumps (off: trust the calibration as is)"""
     merge_deg: PositiveFloat = 2.0
-    """candidates of different jump combinations closer than this are one (the stronger is kept)"""
+    """candidates of different jump combinations closer than this are one (the one listed first is kept)"""
+    align_packets: bool = False
+    """align each packet's chains to the burst's before averaging (always at 2.4 GHz, whose chains
+    jump from packet to packet, CSI Tool issue #6)"""
     burst_packets: NonNegativeInt = 0
     """end a burst after this many packets (0: bursts end with the tag's dwell, by time only)"""
 
@@ -102,6 +106,21 @@ def distinguishable(candidates: list[Candidate], merge_rad: float) -> list[Candi
     return kept
 
 
+def align_packets(clean: np.ndarray, undo: np.ndarray, passes: int = 2) -> np.ndarray:
+    """Each packet (P, F, M) with the jump combination undone (rows of `undo`, (C, M)) that best
+    matches the burst's spatial covariance, the burst's own first: the packets then share one
+    combination, which the candidates resolve like any burst's."""
+    spatial = np.einsum("pfm,pfn->pmn", clean, clean.conj())  # (P, M, M)
+    turn = undo[:, None, :, None] * undo[:, None, None, :].conj()  # (C, 1, M, M)
+    reference = spatial[0]
+    best = np.zeros(len(clean), int)
+    for _ in range(passes):
+        fit = np.einsum("mn,cpmn->cp", reference.conj(), turn * spatial[None]).real
+        best = np.argmax(fit, axis=0)
+        reference = np.einsum("pm,pmn,pn->mn", undo[best], spatial, undo[best].conj())
+    return clean * undo[best][:, None, :]
+
+
 class Aoa(Operator):
     """One Aoa message per burst of a tag's packets."""
 
@@ -114,7 +133,7 @@ class Aoa(Operator):
         super().__init__(params)
         self.setup = RigInput()
         self.rig: Rig | None = None
-        self.estimators: dict[int, JointMusic] = {}
+        self.estimators: dict[tuple[int, bool], JointMusic] = {}
         self.waiting: list[tuple[Any, int]] = []
         self.burst: list[tuple[Any, int]] = []
         self.collinear = False
@@ -149,14 +168,20 @@ class Aoa(Operator):
             raise RuntimeError("aoa: no rig description yet")
         return self.rig
 
-    def _estimator(self, channel: int) -> JointMusic:
-        if channel not in self.estimators:
+    def _estimator(self, channel: int, wide: bool) -> JointMusic:
+        """The estimator of a channel and bandwidth (40 MHz records report other subcarriers)."""
+        if (channel, wide) not in self.estimators:
             p = self.params
             antennas = self._rig.antenna_positions_m
-            self.estimators[channel] = JointMusic(
-                antennas, channel, window=p.window, angle_step_deg=p.grid_deg, max_paths=p.max_paths
+            self.estimators[channel, wide] = JointMusic(
+                antennas,
+                channel,
+                window=p.window,
+                angle_step_deg=p.grid_deg,
+                max_paths=p.max_paths,
+                subcarriers=SUBCARRIERS_40MHZ if wide else SUBCARRIERS_20MHZ,
             )
-        return self.estimators[channel]
+        return self.estimators[channel, wide]
 
     def _add(self, msg: Any, stamp_ns: int):
         if self.burst:
@@ -176,6 +201,11 @@ class Aoa(Operator):
         usable = [(m, s) for m, s in burst if m.nrx == len(self._rig.antenna_positions_m)]
         if len(usable) < len(burst):
             self.drop("packets with another antenna count", len(burst) - len(usable))
+        wide = bool(usable and usable[0][0].rate & RATE_HT40)
+        same = [(m, s) for m, s in usable if bool(m.rate & RATE_HT40) == wide]
+        if len(same) < len(usable):
+            self.drop("packets of another bandwidth than their burst's first", len(usable) - len(same))
+        usable = same
         if len(usable) < self.params.min_packets:
             self.drop("bursts with too few packets")
             return
@@ -191,7 +221,7 @@ class Aoa(Operator):
             self.drop("bursts of empty or invalid CSI")
             return
         csi = csi[finite]
-        music = self._estimator(msg0.channel)
+        music = self._estimator(msg0.channel, wide)
         offsets = self._rig.phase_offsets(msg0.channel) if self.params.calibrate else None
         clean = music.clean(csi, offsets, sto=self.params.remove_sto)
         candidates = self._candidates(music, clean, msg0.channel)
@@ -224,11 +254,13 @@ class Aoa(Operator):
 
     def _candidates(self, music: JointMusic, clean: np.ndarray, channel: int) -> list[Candidate]:
         """The burst's direct path under each combination of chain phase jumps (rover.operators.aoa.jumps),
-        the distinguishable ones, most power first: the covariances of all combinations are one batch
-        for MUSIC, since undoing a jump only rotates the chains' phases."""
+        the distinguishable ones, the no-jump one first: the covariances of all combinations are one
+        batch for MUSIC, since undoing a jump only rotates the chains' phases."""
         p = self.params
         phases = jump_phases(channel, clean.shape[2], p.jumps)
         undo = np.exp(-1j * phases)  # (C, M)
+        if p.jumps and (p.align_packets or phase_jump_step_rad(channel) < math.pi):
+            clean = align_packets(clean, undo)
         cov = music.covariance(clean).mean(axis=0)
         along = np.repeat(undo, music.window, axis=1)  # antenna-major, as the covariance's elements
         spectrum, paths = music.spectrum(along[:, :, None] * cov[None] * along[:, None, :].conj())

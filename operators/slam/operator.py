@@ -256,8 +256,9 @@ class Slam(Operator):
             angles, stds, _ = candidates_of(msg)
             choice = int(epoch.choice[j]) if used else -1
             out = copy.copy(msg)
-            if choice >= 0:
-                out.angle_rad, out.std_rad = float(angles[choice]), float(stds[choice])
+            if choice >= 0:  # the std widened by the other candidates' chances: a doubtful choice says so
+                out.angle_rad = float(angles[choice])
+                out.std_rad = float(min(math.sqrt(stds[choice] ** 2 + epoch.doubt[j]), math.pi))
             out.chosen = choice
             yield Emit("bearings", out, stamp)
 
@@ -307,6 +308,10 @@ class Slam(Operator):
             log.warning(
                 "slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)", self.unchained
             )
+        for slot, tag_id in enumerate(w.tag_ids):
+            combination = w.locked(slot)
+            if combination is not None:
+                log.info("slam: tag %d's chains held jump combination %d all run", tag_id, combination)
         if self.failures:
             log.warning(
                 "slam: %d of %d updates did not converge (kept the previous estimate)", self.failures, self.updates

@@ -105,6 +105,10 @@ class Epoch:
     """the candidate each bearing uses now (max-mixture: the likeliest at the current estimate)"""
     messages: list[Any] = field(default_factory=list)
     """what the bearings came from, handed back with the final choice (opaque here)"""
+    free_choice: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    """the candidate each bearing would take without its tag's locked combination (what the lock learns from)"""
+    doubt: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """per bearing: the variance (rad^2) the other candidates' chances add to the chosen one's angle"""
     velocity_info: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
     """wheel odometry on this epoch's velocity: 0.5 v'Wv - w'v"""
     velocity_linear: np.ndarray = field(default_factory=lambda: np.zeros(2))
@@ -112,6 +116,10 @@ class Epoch:
     def __post_init__(self) -> None:
         if len(self.choice) != len(self.tags):
             self.choice = np.zeros(len(self.tags), int)
+        if len(self.free_choice) != len(self.tags):
+            self.free_choice = np.zeros(len(self.tags), int)
+        if len(self.doubt) != len(self.tags):
+            self.doubt = np.zeros(len(self.tags))
 
     @property
     def bearing(self) -> np.ndarray:
@@ -209,8 +217,10 @@ SEARCH_INFO_SCALE = 0.25
 positions are taken as known, which they are not quite)"""
 SELECT_CAP_SIGMA = 3.0
 """in the max-mixture, a candidate further off than this many stds is as unlikely as any other"""
-LOCK_BEARINGS = 20
-LOCK_SHARE = 0.9
+LOCK_BEARINGS = 30
+LOCK_SHARE = 0.75
+"""a tag locks onto a combination that is the free choice of this share of its last LOCK_BEARINGS
+bearings (a jump at every retune spreads them over all, a quarter each at 5 GHz)"""
 GN_HINGE_WEIGHT = 1e-6
 """the Gauss-Newton steps need no cheirality (the angle residual has it); a tiny weight keeps h unique"""
 PV_FROM_VP = [2, 3, 0, 1]
@@ -241,12 +251,16 @@ class SlidingWindow:
     until the search has found where it is)"""
     history: dict[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]] = field(default_factory=dict)
     """per tag slot waiting for the search: (stamp, world candidate angles, stds, jumps) of its bearings"""
+    heard: dict[int, int] = field(default_factory=dict)
+    """per tag slot: bearings with several candidates heard so far"""
     searched: dict[int, int] = field(default_factory=dict)
-    """per tag slot: bearings in its history at its last search"""
+    """per tag slot: `heard` at its last search"""
     final_xy: dict[int, np.ndarray] = field(default_factory=dict)
     """robot position of each epoch that left the window, by stamp"""
     jump_counts: dict[int, dict[int, int]] = field(default_factory=dict)
     """per tag slot: how often each jump combination was chosen, for the max-mixture's weights"""
+    recent_jumps: dict[int, list[int]] = field(default_factory=dict)
+    """per tag slot: the combinations of its last LOCK_BEARINGS free choices, for the lock"""
     left: list[Epoch] = field(default_factory=list)
     """epochs that left the window since the owner last emptied this list (their choices are final)"""
     found: list[tuple[int, Found]] = field(default_factory=list)
@@ -319,6 +333,7 @@ class SlidingWindow:
             if several[j]:
                 kept = self.history.setdefault(t, [])
                 kept.append((stamp_ns, candidates[j], raw_std[j], jumps[j]))
+                self.heard[t] = self.heard.get(t, 0) + 1
                 del kept[:-SEARCH_HISTORY]
         self.x = np.concatenate([self.x[: 4 * len(self.epochs)], state, tags.ravel()])
         epoch = Epoch(
@@ -392,12 +407,23 @@ class SlidingWindow:
         predicted = np.arctan2(offset[:, 1], offset[:, 0])
         r = wrap(predicted[:, None] - angles) / stds
         cost = 0.5 * np.minimum(r**2, SELECT_CAP_SIGMA**2) + np.log(stds) - self._log_weights(tag, jumps)
-        choice = np.argmin(np.where(np.isfinite(r), cost, np.inf), axis=1)
+        cost = np.where(np.isfinite(r), cost, np.inf)
+        free = np.argmin(cost, axis=1)
+        rows = np.arange(len(free))
+        held = np.array([self.locked(int(t)) if self.active[t] else None for t in tag], dtype=object)
+        own = (jumps == np.where(held == None, -2, held).astype(int)[:, None]) & np.isfinite(angles)  # noqa: E711
+        choice = np.where(own.any(axis=1), np.argmax(own, axis=1), free)
+        chance = np.exp(-(cost - cost[rows, choice][:, None]))  # each candidate's odds against the chosen
+        chance /= chance.sum(axis=1, keepdims=True)
+        apart = np.where(np.isfinite(angles), wrap(angles - angles[rows, choice][:, None]), 0.0)
+        doubt = np.sum(chance * apart**2, axis=1)
         use = np.array(self.active, bool)[tag]
         start = 0
         for e in self.epochs:
             n = len(e.tags)
             e.choice = np.where(use[start : start + n], choice[start : start + n], e.choice)
+            e.free_choice = np.where(use[start : start + n], free[start : start + n], e.free_choice)
+            e.doubt = np.where(use[start : start + n], doubt[start : start + n], e.doubt)
             start += n
 
     def _log_weights(self, tag: np.ndarray, jumps: np.ndarray) -> np.ndarray:
@@ -413,21 +439,22 @@ class SlidingWindow:
         return out
 
     def locked(self, tag_slot: int) -> int | None:
-        """The jump combination a tag has settled on (chosen for 90% of at least 20 bearings), if any."""
-        counts = self.jump_counts.get(tag_slot, {})
-        total = sum(counts.values())
-        if total < LOCK_BEARINGS:
+        """The jump combination a tag's chains hold (the free choice of LOCK_SHARE of its last
+        LOCK_BEARINGS bearings), if any: its bearings then use that combination's candidate, the
+        discrete state a jump once per run leaves; a later jump unlocks it as the free choices move."""
+        recent = self.recent_jumps.get(tag_slot, [])
+        if len(recent) < LOCK_BEARINGS:
             return None
-        top = max(counts, key=lambda c: counts[c])
-        return top if counts[top] >= LOCK_SHARE * total else None
+        top = max(set(recent), key=recent.count)
+        return top if recent.count(top) >= LOCK_SHARE * len(recent) else None
 
     def _search(self) -> None:
         """Look for the tags waiting for their position whose history grew since their last search."""
         window_xy = {e.stamp_ns: self.x[4 * k : 4 * k + 2] for k, e in enumerate(self.epochs)}
         for t, kept in list(self.history.items()):
-            if self.active[t] or len(kept) < self.searched.get(t, 0) + SEARCH_EVERY:
+            if self.active[t] or self.heard[t] < self.searched.get(t, 0) + SEARCH_EVERY:
                 continue
-            self.searched[t] = len(kept)
+            self.searched[t] = self.heard[t]
             rows = [(st, xy, row) for st, *row in kept if (xy := self.final_xy.get(st, window_xy.get(st))) is not None]
             if len(rows) < self.search.min_bearings:
                 continue
@@ -469,9 +496,11 @@ class SlidingWindow:
         self.active[t] = True
         self.history.pop(t, None)
         counts = self.jump_counts.setdefault(t, {})
-        for j in jumps[np.flatnonzero(inlier), found.choice[inlier]]:
+        for j in jumps[np.flatnonzero(gone), found.choice[gone]]:  # those in the window count when they leave it
             if j >= 0:
                 counts[int(j)] = counts.get(int(j), 0) + 1
+        agreed = jumps[np.flatnonzero(inlier), found.choice[inlier]]
+        self.recent_jumps[t] = [int(j) for j in agreed[agreed >= 0][-LOCK_BEARINGS:]]
         self.found.append((self.tag_ids[t], found))
 
     def _offsets(self, x: np.ndarray, epoch: np.ndarray, tag: np.ndarray) -> np.ndarray:
@@ -720,10 +749,13 @@ class SlidingWindow:
             for j, t in enumerate(old.tags):
                 if not self.active[t]:
                     continue
-                jump = int(old.candidate_jumps[j, old.choice[j]])
+                jump = int(old.candidate_jumps[j, old.free_choice[j]])
                 if jump >= 0:
                     counts = self.jump_counts.setdefault(int(t), {})
                     counts[jump] = counts.get(jump, 0) + 1
+                    recent = self.recent_jumps.setdefault(int(t), [])
+                    recent.append(jump)
+                    del recent[:-LOCK_BEARINGS]
                 cols = np.concatenate([[0, 1], 4 + 2 * t + np.arange(2)])
                 row = np.concatenate([-jb[j], jb[j]])
                 info[np.ix_(cols, cols)] += w[j] * np.outer(row, row)

@@ -34,10 +34,10 @@ class SearchSettings:
     """how much more (in squared stds) the best hypothesis elsewhere must cost: the evidence needed"""
     min_inliers: float = 0.9
     """share of the bearings the position must explain"""
-    min_parallax_deg: float = 15.0
+    min_parallax_deg: float = 10.0
     """spread of the inliers' directions seen from the tag: the robot must have moved around it"""
     min_range_m: float = 0.3
-    max_range_m: float = 20.0
+    max_range_m: float = 10.0
     separation_m: float = 0.5
     """hypotheses closer than this (or a fifth of the range) to the best are the same place"""
     min_crossing_deg: float = 3.0
@@ -64,6 +64,8 @@ class Found:
         return self.margin >= s.min_margin and self.inliers >= s.min_inliers and self.parallax_deg >= s.min_parallax_deg
 
 
+RAY_POINTS = 8
+"""hypotheses along each candidate ray of the pair bearings, from min_range_m to max_range_m"""
 FREE_MARGIN_FACTOR = 2.0
 """a position where each bearing picks its own candidate needs this many times the margin: with a
 free choice per bearing, a wrong place finds more ways to fit"""
@@ -87,7 +89,9 @@ def _score(r: np.ndarray, cap: float) -> np.ndarray:
 def _hypotheses(robot: np.ndarray, angles: np.ndarray, s: SearchSettings) -> np.ndarray:
     """Intersections (H, 2) of candidate rays from pairs of bearings spread over the history."""
     n, k = angles.shape
-    pick = np.unique(np.linspace(0, n - 1, min(n, s.pair_bearings)).round().astype(int))
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(robot, axis=0), axis=1))])
+    spots = np.linspace(0.0, along[-1], min(n, s.pair_bearings))  # spread over the path, not the time
+    pick = np.unique(np.minimum(np.searchsorted(along, spots), n - 1))
     i, j = np.triu_indices(len(pick), 1)
     i, j = pick[i], pick[j]
     a_i = np.repeat(angles[i], k, axis=1)  # (pairs, K*K): candidate a of i with every b of j
@@ -103,7 +107,13 @@ def _hypotheses(robot: np.ndarray, angles: np.ndarray, s: SearchSettings) -> np.
     ok &= (along_i >= s.min_range_m) & (along_j >= s.min_range_m)
     ok &= (along_i <= s.max_range_m) & (along_j <= s.max_range_m) & np.isfinite(along_i + along_j)
     q = robot[i][:, None, :] + along_i[..., None] * u
-    return q[ok]
+    # and points along each ray: where the rays are too parallel to cross (a tag ahead on a straight
+    # path), these are the places that explain them, and they compete with any crossing elsewhere
+    ranges = np.geomspace(s.min_range_m, s.max_range_m, RAY_POINTS)
+    a = angles[pick]
+    ray = robot[pick][:, None, None, :] + ranges[None, None, :, None] * np.stack([np.cos(a), np.sin(a)], -1)[:, :, None]
+    ray = ray.reshape(-1, 2)
+    return np.concatenate([q[ok], ray[np.isfinite(ray).all(axis=1)]])
 
 
 def _refine(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float, steps: int = 5):
@@ -173,7 +183,11 @@ def search(
             return best
     free = _search(robot_xy, angles, stds, s)
     if free is not None:
-        free = replace(free, margin=free.margin / FREE_MARGIN_FACTOR)
+        reach = _reach(robot_xy, free.position, s)
+        elsewhere = np.array([f.position for f in held if np.linalg.norm(f.position - free.position) > reach])
+        cost = _score(_residuals(elsewhere.reshape(-1, 2), robot_xy, angles, stds), s.cap_sigma)
+        margin = min([free.margin, *(cost - free.score)])  # a place another search found
+        free = replace(free, margin=margin / FREE_MARGIN_FACTOR)
     return free if not held or (free is not None and free.clear(s)) else best
 
 

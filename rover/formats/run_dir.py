@@ -63,6 +63,7 @@ def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]]
 
     history: list[tuple[int, int, float, float, bool]] = []
     aoa: dict[str, list[tuple[int, int, float, float]]] = {"/rover/aoa": [], "/rover/bearings": []}
+    resolved_recorded = False
     if not path.exists():
         return history, []
     with BagReader(path, "cannot read") as bag:
@@ -71,9 +72,13 @@ def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]]
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             if m.topic == "/rover/tags":
                 history += [(stamp, t.id, t.position.x, t.position.y, t.observable) for t in msg.tags]
-            elif m.topic == "/rover/aoa" or msg.chosen >= 0:
+            elif m.topic == "/rover/bearings":
+                resolved_recorded = True
+                if msg.chosen >= 0:
+                    aoa[m.topic].append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
+            else:
                 aoa[m.topic].append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
-    return history, aoa["/rover/bearings"] or aoa["/rover/aoa"]
+    return history, aoa["/rover/bearings"] if resolved_recorded else aoa["/rover/aoa"]
 
 
 def record(

@@ -67,6 +67,10 @@ def freq_channel(freq_hz: float) -> int | None:
     return int(round(number)) if abs(number - round(number)) < 1e-6 and 32 <= round(number) <= 177 else None
 
 
+RATE_HT40 = 0x800
+"""The 40 MHz flag of the Intel 5300's rate_n_flags (iwlwifi's RATE_MCS_HT40_MSK)."""
+
+
 def subcarrier_freqs_hz(channel: int, width_hz: float = CHANNEL_WIDTH_HZ) -> np.ndarray:
     """Absolute frequencies of the 30 reported subcarriers of a channel."""
     index = SUBCARRIERS_20MHZ if width_hz == CHANNEL_WIDTH_HZ else SUBCARRIERS_40MHZ
