@@ -439,6 +439,7 @@ def test_the_default_pipeline_on_three_hosts_gives_the_same_bytes(tmp_path):
     topics = {t for t, _s, _d in read_bag(tmp_path / "one" / "results.mcap")}
     assert topics == {
         "/rover/aoa",
+        "/rover/bearings",
         "/rover/preintegration",
         "/rover/sweep",
         "/rover/pose",

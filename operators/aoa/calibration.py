@@ -24,17 +24,11 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.formats.intel5300 import SUBCARRIERS
-from rover.formats.wifi import channel_freq_hz
+from rover.formats.wifi import phase_jump_step_rad
 from rover.geometry import wrap_angle
 from rover.operators.aoa.array import steering
 from rover.operators.aoa.music import JointMusic
 
-JUMP_STEP_5GHZ_RAD = math.pi
-"""At 5 GHz a chain's offset comes back shifted by a multiple of pi (LGTM repeats; CSI Tool issues #113, #446)."""
-JUMP_STEP_2GHZ_RAD = math.pi / 2
-"""At 2.4 GHz by a multiple of pi/2 (CSI Tool issue #6)."""
-BAND_5GHZ_HZ = 4.9e9
-"""Centre frequencies from here up are in the 5 GHz band."""
 OUTLIER_SIGMAS = 5.0
 """A packet this many robust standard deviations from the mean on some chain is not the calibration
 signal (another transmitter, a packet taken while the antenna selection changed) and is left out.
@@ -50,12 +44,12 @@ MIN_PACKETS = 2
 
 
 def jump_step_rad(channel: int) -> float:
-    """The step a chain's offset jumps by on `channel`: pi at 5 GHz, pi/2 at 2.4 GHz."""
+    """The step a chain's offset jumps by on `channel` (rover.formats.wifi.phase_jump_step_rad), or
+    BadInput for a number that is no channel."""
     try:
-        freq_hz = channel_freq_hz(channel)
+        return phase_jump_step_rad(channel)
     except (TypeError, ValueError):
         raise BadInput(f"calibrate: {channel!r} is not a WiFi channel number") from None
-    return JUMP_STEP_5GHZ_RAD if freq_hz >= BAND_5GHZ_HZ else JUMP_STEP_2GHZ_RAD
 
 
 def reduce_offsets(offsets_rad: np.ndarray, step_rad: float) -> np.ndarray:
