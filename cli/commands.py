@@ -284,6 +284,7 @@ def cmd_aoa(args: argparse.Namespace) -> int:
     from rover.formats.intel5300 import read_dat
     from rover.formats.rig import load_rig
     from rover.formats.text import read_text
+    from rover.formats.wifi import channel_freq_hz
     from rover.operators.aoa.bare_log import log_bursts, with_calibration
 
     out = check_output(args.csv, force=args.force) if args.csv else None  # before any work
@@ -293,6 +294,10 @@ def cmd_aoa(args: argparse.Namespace) -> int:
     channel = args.channel if args.channel is not None else rig.receiver_channel
     if channel is None:
         raise BadInput(f"{args.setup}: give --channel N, the channel the log was recorded on (or receiver.channel)")
+    try:
+        channel_freq_hz(channel)
+    except ValueError:
+        raise BadInput(f"--channel: {channel} is not a WiFi channel number") from None
     source = Path(args.log)
     if not source.is_file():
         raise BadInput(f"{source}: {'is a directory' if source.is_dir() else 'no such file'}")
@@ -459,14 +464,17 @@ def _seconds(text: str) -> float:
     return value
 
 
-def _positive_int(text: str) -> int:
-    """--burst: a whole number from 1."""
+def _burst(text: str) -> int:
+    """--burst: a whole number of packets, at least the aoa operator's `min_packets`."""
+    from rover.operators.aoa.operator import AoaParams
+
+    least = AoaParams().min_packets
     try:
         value = int(text)
     except ValueError:
         value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"a whole number from 1, got {text!r}")
+    if value < least:
+        raise argparse.ArgumentTypeError(f"a whole number of packets from {least}, got {text!r}")
     return value
 
 
@@ -569,7 +577,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--setup", required=True, help="rig file: the receiver's antennas (and channel, calibration)")
     p.add_argument("--calibration", help="a `rover calibrate --out` file: its phase offsets replace the setup's")
     p.add_argument("--channel", type=int, help="the channel the log was recorded on (default: receiver.channel)")
-    p.add_argument("--burst", type=_positive_int, default=50, help="packets per burst (default 50)")
+    p.add_argument("--burst", type=_burst, default=50, help="packets per burst (default 50, at least 3)")
     p.add_argument("--csv", help="also write the rows to this CSV file")
     p.add_argument("--force", action="store_true", help="replace an existing --csv file")
     p.set_defaults(func=cmd_aoa)

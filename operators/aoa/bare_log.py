@@ -23,7 +23,8 @@ CLOCK_WRAP_US = 2**32
 def with_calibration(rig: Rig, calibration_text: str, source: str) -> Rig:
     """The rig with the `receiver.phase_offsets_rad` of a calibration file (as `rover calibrate --out` writes it)."""
     block = safe_load_limited(calibration_text, source)
-    offsets = block.get("receiver", {}).get("phase_offsets_rad") if isinstance(block, dict) else None
+    receiver = block.get("receiver") if isinstance(block, dict) else None
+    offsets = receiver.get("phase_offsets_rad") if isinstance(receiver, dict) else None
     if offsets is None:
         raise BadInput(f"{source}: no receiver.phase_offsets_rad in it (write one with `rover calibrate --out`)")
     data = safe_load_limited(rig.text, "the setup")
@@ -32,7 +33,7 @@ def with_calibration(rig: Rig, calibration_text: str, source: str) -> Rig:
 
 
 def log_stamps_ns(timestamp_low: np.ndarray) -> np.ndarray:
-    """Nanoseconds since the first record, from the NIC's 32-bit microsecond clock (wraps unwrapped)."""
+    """Nanoseconds since the first record given, from the NIC's 32-bit microsecond clock (wraps unwrapped)."""
     t = np.asarray(timestamp_low, dtype=np.int64)
     wraps = np.concatenate([[0], np.cumsum(np.diff(t) < 0)])
     return (t + wraps * CLOCK_WRAP_US - t[0]) * 1000 if len(t) else t
@@ -46,6 +47,7 @@ def log_bursts(records: CsiRecords, rig: Rig, channel: int, burst_packets: int) 
         raise BadInput(f"no beamforming record with {m} receive chains (of {len(records.nrx)})")
     stamps = log_stamps_ns(records.timestamp_low[usable])
     csi = records.csi[usable, :, :m, :1]
+    rates = records.rate[usable]
     frames = [
         make(
             "rover_msgs/msg/Csi",
@@ -53,10 +55,11 @@ def log_bursts(records: CsiRecords, rig: Rig, channel: int, burst_packets: int) 
             channel=channel,
             nrx=m,
             ntx=1,
+            rate=int(rate),
             csi_real=np.ascontiguousarray(c.real, dtype=np.float32).ravel(),
             csi_imag=np.ascontiguousarray(c.imag, dtype=np.float32).ravel(),
         )
-        for stamp, c in zip(stamps, csi, strict=True)
+        for stamp, c, rate in zip(stamps, csi, rates, strict=True)
     ]
     setup = make("rover_msgs/msg/RigSetup", setup_yaml=rig.text)
     params = AoaParams(burst_packets=burst_packets, max_burst_s=1e6)

@@ -271,8 +271,8 @@ class Aoa(Operator):
         found = []
         for c in np.flatnonzero(paths > 0):
             candidate = self._direction(peaks, int(c), int(paths[c]), energies[c], response)
-            if candidate is not None:
-                found.append(candidate)
+            if candidate is not None and self.field[ArrayResponse.degree(candidate.angle_rad)]:
+                found.append(candidate)  # a direction outside the rig's field of view is no candidate
         return distinguishable(found, math.radians(p.merge_deg))
 
     def _direction(

@@ -140,6 +140,9 @@ class Slam(Operator):
         yield from self._odometry(msg, stamp_ns)
 
     def _bearing(self, msg: Any, stamp: int) -> None:
+        if not len(msg.candidate_angles_rad) == len(msg.candidate_stds_rad) == len(msg.candidate_jumps):
+            self.drop("AoAs whose candidate arrays differ in length")
+            return
         angles, stds, _ = candidates_of(msg)
         if not (np.isfinite(angles).all() and np.isfinite(stds).all() and (stds > 0).all()):
             self.drop("AoAs with a non-finite angle or std")

@@ -257,10 +257,9 @@ class SlidingWindow:
     """per tag slot: `heard` at its last search"""
     final_xy: dict[int, np.ndarray] = field(default_factory=dict)
     """robot position of each epoch that left the window, by stamp"""
-    jump_counts: dict[int, dict[int, int]] = field(default_factory=dict)
-    """per tag slot: how often each jump combination was chosen, for the max-mixture's weights"""
     recent_jumps: dict[int, list[int]] = field(default_factory=dict)
-    """per tag slot: the combinations of its last LOCK_BEARINGS free choices, for the lock"""
+    """per tag slot: the combinations of its last LOCK_BEARINGS free choices: the max-mixture's
+    weights and the lock"""
     left: list[Epoch] = field(default_factory=list)
     """epochs that left the window since the owner last emptied this list (their choices are final)"""
     found: list[tuple[int, Found]] = field(default_factory=list)
@@ -427,13 +426,14 @@ class SlidingWindow:
             start += n
 
     def _log_weights(self, tag: np.ndarray, jumps: np.ndarray) -> np.ndarray:
-        """log of each candidate's combination weight for its tag: chosen counts plus one, normalized."""
+        """log of each candidate's combination weight for its tag: its count among the tag's last
+        LOCK_BEARINGS free choices plus one, normalized (recent only, so a later jump can be followed)."""
         combinations = max(int(jumps.max()) + 1, 1)
         out = np.zeros(jumps.shape)
         for t in np.unique(tag):
-            counts = self.jump_counts.get(int(t), {})
-            total = sum(counts.values()) + combinations
-            table = np.log((np.array([counts.get(c, 0) for c in range(combinations)]) + 1.0) / total)
+            recent = self.recent_jumps.get(int(t), [])
+            counts = np.bincount([j for j in recent if j < combinations], minlength=combinations)
+            table = np.log((counts + 1.0) / (len(recent) + combinations))
             mine = tag == t
             out[mine] = np.where(jumps[mine] >= 0, table[np.maximum(jumps[mine], 0)], -math.log(combinations))
         return out
@@ -495,11 +495,7 @@ class SlidingWindow:
         p.grad[at] = 0.0
         self.active[t] = True
         self.history.pop(t, None)
-        counts = self.jump_counts.setdefault(t, {})
-        for j in jumps[np.flatnonzero(gone), found.choice[gone]]:  # those in the window count when they leave it
-            if j >= 0:
-                counts[int(j)] = counts.get(int(j), 0) + 1
-        agreed = jumps[np.flatnonzero(inlier), found.choice[inlier]]
+        agreed = jumps[np.flatnonzero(inlier), found.choice[inlier]]  # the search's evidence starts the weights
         self.recent_jumps[t] = [int(j) for j in agreed[agreed >= 0][-LOCK_BEARINGS:]]
         self.found.append((self.tag_ids[t], found))
 
@@ -565,6 +561,7 @@ class SlidingWindow:
         shape = self.shape
         if self.program is None or self.program.shape != shape:
             self.program = WindowProgram(shape)
+        self._search()  # first: a tag it finds changes the prior the program's numbers come from
         p = self._prior
         model = self._model()
         c = np.zeros(shape.states)
@@ -579,7 +576,6 @@ class SlidingWindow:
             edge_delta=model.edge_delta,
             huber_m=s.huber_sigma,
         )
-        self._search()
         self._select(self.x)
         epoch, tag, bearing, std, filled = self._rows()
         perp = np.stack([-bearing[:, 1], bearing[:, 0]], axis=1)
@@ -751,8 +747,6 @@ class SlidingWindow:
                     continue
                 jump = int(old.candidate_jumps[j, old.free_choice[j]])
                 if jump >= 0:
-                    counts = self.jump_counts.setdefault(int(t), {})
-                    counts[jump] = counts.get(jump, 0) + 1
                     recent = self.recent_jumps.setdefault(int(t), [])
                     recent.append(jump)
                     del recent[:-LOCK_BEARINGS]

@@ -69,6 +69,8 @@ RAY_POINTS = 8
 FREE_MARGIN_FACTOR = 2.0
 """a position where each bearing picks its own candidate needs this many times the margin: with a
 free choice per bearing, a wrong place finds more ways to fit"""
+SCORE_CHUNK = 4_000_000
+"""residuals (hypotheses x bearings x candidates) scored at once"""
 STEP_LIMIT_M = 5.0
 """a Gauss-Newton step longer than this is an unconstrained range, not a refinement"""
 
@@ -84,6 +86,14 @@ def _residuals(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.nd
 def _score(r: np.ndarray, cap: float) -> np.ndarray:
     """Per hypothesis: the sum over bearings of the best candidate's capped squared residual."""
     return np.minimum(np.min(r**2, axis=2), cap**2).sum(axis=1)
+
+
+def _scores(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float) -> np.ndarray:
+    """_score of every hypothesis, a chunk at a time (16 candidates at 2.4 GHz make the residuals large)."""
+    per = max(1, SCORE_CHUNK // max(angles.size, 1))
+    return np.concatenate(
+        [_score(_residuals(q[i : i + per], robot, angles, stds), cap) for i in range(0, len(q), per)] or [np.zeros(0)]
+    )
 
 
 def _hypotheses(robot: np.ndarray, angles: np.ndarray, s: SearchSettings) -> np.ndarray:
@@ -185,7 +195,7 @@ def search(
     if free is not None:
         reach = _reach(robot_xy, free.position, s)
         elsewhere = np.array([f.position for f in held if np.linalg.norm(f.position - free.position) > reach])
-        cost = _score(_residuals(elsewhere.reshape(-1, 2), robot_xy, angles, stds), s.cap_sigma)
+        cost = _scores(elsewhere.reshape(-1, 2), robot_xy, angles, stds, s.cap_sigma)
         margin = min([free.margin, *(cost - free.score)])  # a place another search found
         free = replace(free, margin=margin / FREE_MARGIN_FACTOR)
     return free if not held or (free is not None and free.clear(s)) else best
@@ -195,7 +205,7 @@ def _search(robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: Searc
     q = _hypotheses(robot_xy, angles, s)
     if len(q) == 0:
         return None
-    score = _score(_residuals(q, robot_xy, angles, stds), s.cap_sigma)
+    score = _scores(q, robot_xy, angles, stds, s.cap_sigma)
     position, choice, info = _refine(q[np.argmin(score)], robot_xy, angles, stds, s.cap_sigma)
     best = float(_score(_residuals(position[None], robot_xy, angles, stds), s.cap_sigma)[0])
     elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(robot_xy, position, s)]
