@@ -403,3 +403,40 @@ def test_packets_whose_chains_jump_at_2_4_ghz_are_aligned_before_averaging():
     ]
     nearest = [min(angle_error_deg(c, t) for c in a.candidate_angles_rad) for a, t in zip(out, truths, strict=True)]
     assert np.mean(np.array(nearest) < 3.0) >= 0.9, np.round(nearest, 1)
+
+
+def test_no_candidate_outside_the_rigs_field_of_view():
+    """A planar array with `field_of_view_deg`: directions outside it are no candidates."""
+    channel = 157
+    d = SPEED_OF_LIGHT_M_S / channel_freq_hz(channel) / 2
+    antennas = np.array([[0.0, 0.0], [d, 0.0], [d / 2, -d * math.sqrt(3) / 2]])
+    freqs = subcarrier_freqs_hz(channel)
+    rng = np.random.default_rng(3)
+    text = "receiver:\n  antenna_positions_m: " + str(antennas.tolist()) + f"\n  channel: {channel}\n"
+    packets = []
+    for burst, angle in enumerate(np.radians([10.0, 150.0, -120.0])):
+        lead = antennas @ np.array([math.cos(angle), math.sin(angle)]) / SPEED_OF_LIGHT_M_S
+        for k in range(10):
+            h = np.exp(2j * np.pi * freqs[:, None] * lead[None, :] + 1j * rng.uniform(0, 2 * math.pi))
+            h = h + 0.05 * rng.standard_normal((30, 3))
+            packets.append(
+                make(
+                    "rover_msgs/msg/Csi",
+                    header=header(burst * 1_000_000_000 + k * 1_000_000, "base_link"),
+                    channel=channel,
+                    nrx=3,
+                    ntx=1,
+                    csi_real=h.real.astype(np.float32).ravel(),
+                    csi_imag=h.imag.astype(np.float32).ravel(),
+                )
+            )
+
+    def candidates(rig_text: str) -> list[np.ndarray]:
+        setup = make("rover_msgs/msg/RigSetup", setup_yaml=rig_text)
+        out = run_operator(Aoa(), {"setup": [setup], "csi": packets})
+        return [np.degrees(np.asarray(e.msg.candidate_angles_rad)) for e in out]
+
+    everywhere = candidates(text)
+    assert len(everywhere) == 3 and any(np.any(np.abs(c) > 60) for c in everywhere)
+    for c in candidates(text + "  field_of_view_deg: [-60, 60]\n"):
+        assert np.all(np.abs(c) <= 60.5), c

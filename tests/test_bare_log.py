@@ -21,7 +21,10 @@ LGTM_RIG = "receiver:\n  antenna_positions_m: [[0, 0], [0, -0.1], [0, -0.2]]\n  
 def rover(*argv: str) -> tuple[int, str, str]:
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        status = main(list(argv))
+        try:
+            status = main(list(argv))
+        except SystemExit as exc:  # argparse's usage errors
+            status = int(exc.code or 0)
     return status, out.getvalue(), err.getvalue()
 
 
@@ -68,11 +71,24 @@ def test_rover_aoa_runs_on_every_lgtm_capture(tmp_path):
     [
         ("receiver:\n  antenna_positions_m: [[0, 0], [0, -0.1], [0, -0.2]]\n", [], "give --channel N"),
         (LGTM_RIG, ["--calibration", "missing.yaml"], "missing.yaml"),
+        (LGTM_RIG, ["--channel", "999"], "999 is not a WiFi channel"),
+        (LGTM_RIG, ["--burst", "2"], "a whole number of packets from 3"),
     ],
 )
 def test_bad_input_is_one_line_and_status_2(tmp_path, rig, extra, message):
+    """One error line naming the problem (argparse's own come after its usage lines)."""
     setup = tmp_path / "rig.yaml"
     setup.write_text(rig)
     path = reference_data() / "csi" / "lgtm" / "lgtm-monitor.dat--1m-0-degrees--laptop-1--test-1.dat"
     status, _out, err = rover("-q", "aoa", str(path), "--setup", str(setup), *extra)
-    assert status == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    lines = err.strip().splitlines()
+    assert status == 2 and message in lines[-1] and sum("error" in line for line in lines) == 1, err
+
+
+def test_a_calibration_file_of_the_wrong_shape_is_one_line(tmp_path):
+    setup, calibration = tmp_path / "rig.yaml", tmp_path / "cal.yaml"
+    setup.write_text(LGTM_RIG)
+    calibration.write_text("receiver: [1, 2]\n")
+    path = reference_data() / "csi" / "lgtm" / "lgtm-monitor.dat--1m-0-degrees--laptop-1--test-1.dat"
+    status, _out, err = rover("-q", "aoa", str(path), "--setup", str(setup), "--calibration", str(calibration))
+    assert status == 2 and "no receiver.phase_offsets_rad" in err and len(err.strip().splitlines()) == 1, err
