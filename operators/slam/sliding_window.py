@@ -412,7 +412,11 @@ class SlidingWindow:
         held = np.array([self.locked(int(t)) if self.active[t] else None for t in tag], dtype=object)
         own = (jumps == np.where(held == None, -2, held).astype(int)[:, None]) & np.isfinite(angles)  # noqa: E711
         choice = np.where(own.any(axis=1), np.argmax(own, axis=1), free)
-        chance = np.exp(-(cost - cost[rows, choice][:, None]))  # each candidate's odds against the chosen
+        # odds of each candidate against the chosen one, uncapped and with the bursts' own stds (the
+        # window's are scaled up for the errors consecutive bursts share, which is no doubt about a choice)
+        raw = r * self.settings.aoa_std_scale
+        likely = np.where(np.isfinite(raw), 0.5 * raw**2 + np.log(stds) - self._log_weights(tag, jumps), np.inf)
+        chance = np.exp(-(likely - likely[rows, choice][:, None]))
         chance /= chance.sum(axis=1, keepdims=True)
         apart = np.where(np.isfinite(angles), wrap(angles - angles[rows, choice][:, None]), 0.0)
         doubt = np.sum(chance * apart**2, axis=1)
