@@ -358,6 +358,19 @@ def test_40_mhz_records_are_decoded_and_used():
     assert np.mean(errors < 3.0) >= 0.9, np.round(errors, 1)
 
 
+def burst_packet(h: np.ndarray, burst: int, k: int, channel: int) -> object:
+    """Packet k of burst `burst` (bursts a second apart) with CSI h (30, 3), as csi_decode sends it."""
+    return make(
+        "rover_msgs/msg/Csi",
+        header=header(burst * 1_000_000_000 + k * 1_000_000, "base_link"),
+        channel=channel,
+        nrx=3,
+        ntx=1,
+        csi_real=h.real.astype(np.float32).ravel(),
+        csi_imag=h.imag.astype(np.float32).ravel(),
+    )
+
+
 def test_packets_whose_chains_jump_at_2_4_ghz_are_aligned_before_averaging():
     """At 2.4 GHz each chain jumps by a multiple of pi/2 from packet to packet (CSI Tool issue #6):
     the burst's packets are brought to one combination, so a candidate holds the true angle."""
@@ -382,17 +395,7 @@ def test_packets_whose_chains_jump_at_2_4_ghz_are_aligned_before_averaging():
             h = np.exp(2j * np.pi * freqs[:, None] * lead[None, :]) * np.exp(1j * math.pi / 2 * steps[k])[None, :]
             h = h * np.exp(1j * rng.uniform(0, 2 * math.pi)) + 0.05 * rng.standard_normal((30, 3))
             burst_csi.append(h)
-            packets.append(
-                make(
-                    "rover_msgs/msg/Csi",
-                    header=header(burst * 1_000_000_000 + k * 1_000_000, "base_link"),
-                    channel=channel,
-                    nrx=3,
-                    ntx=1,
-                    csi_real=h.real.astype(np.float32).ravel(),
-                    csi_imag=h.imag.astype(np.float32).ravel(),
-                )
-            )
+            packets.append(burst_packet(h, burst, k, channel))
         aligned = align_packets(np.array(burst_csi), undo)
         relative = aligned[:, :, 1:] / aligned[:, :, :1] / (aligned[0, :, 1:] / aligned[0, :, :1])[None]
         recovered.append(np.abs(np.angle(relative.mean(axis=1))).max())  # 0 when every packet matches the first
@@ -419,17 +422,7 @@ def test_no_candidate_outside_the_rigs_field_of_view():
         for k in range(10):
             h = np.exp(2j * np.pi * freqs[:, None] * lead[None, :] + 1j * rng.uniform(0, 2 * math.pi))
             h = h + 0.05 * rng.standard_normal((30, 3))
-            packets.append(
-                make(
-                    "rover_msgs/msg/Csi",
-                    header=header(burst * 1_000_000_000 + k * 1_000_000, "base_link"),
-                    channel=channel,
-                    nrx=3,
-                    ntx=1,
-                    csi_real=h.real.astype(np.float32).ravel(),
-                    csi_imag=h.imag.astype(np.float32).ravel(),
-                )
-            )
+            packets.append(burst_packet(h, burst, k, channel))
 
     def candidates(rig_text: str) -> list[np.ndarray]:
         setup = make("rover_msgs/msg/RigSetup", setup_yaml=rig_text)
