@@ -249,8 +249,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         with source.open("rb") as f:
             kinds.append("dataset" if f.read(len(MAGIC)) == MAGIC else "log")
     logs = [s for s, kind in zip(args.sources, kinds, strict=True) if kind == "log"]
-    angles = _per_log(args.angle_deg, logs, "--angle-deg")
-    channels = _per_log(args.channel, logs, "--channel")
+    datasets = [s for s, kind in zip(args.sources, kinds, strict=True) if kind == "dataset"]
+    angles = _per_log(args.angle_deg, logs, "--angle-deg", datasets)
+    channels = _per_log(args.channel, logs, "--channel", datasets)
     rig = None
     if args.setup:
         from rover.formats.rig import load_rig
@@ -328,13 +329,14 @@ def cmd_aoa(args: argparse.Namespace) -> int:
     return 0
 
 
-def _per_log(values: list[Any] | None, logs: list[str], option: str) -> list[Any]:
+def _per_log(values: list[Any] | None, logs: list[str], option: str, datasets: list[str]) -> list[Any]:
     """One value of an option per CSI log: given once for all of them, or once per log in order."""
     if not values:
         return []
     if not logs:
         raise BadInput(
-            f"{option} is for CSI logs; a dataset's angles and channels come from its frames and ground truth"
+            f"{option} is for CSI logs, and {', '.join(datasets)} is a dataset (MCAP): its angles and channels "
+            "come from its frames and ground truth"
         )
     if len(values) not in (1, len(logs)):
         raise BadInput(f"{option} given {len(values)} times for {len(logs)} CSI logs: give it once, or once per log")

@@ -374,3 +374,13 @@ def test_cli_contract_on_any_log_or_dataset(data):
     )
     assert_contract(status, lines, left, which)
     assert status == 0 or len(lines) == 1
+
+
+def test_a_log_name_holding_a_dataset_with_log_options_is_one_line_naming_it():
+    """Found by the fuzz: a .dat whose bytes are an MCAP file is a dataset, and --angle-deg is refused naming it."""
+    status, lines, left = run_cli(
+        lambda d: ["calibrate", str(d / "c.dat"), "--angle-deg", "20", "--out", str(d / "o.yaml")],
+        {"c.dat": b"\x89MCAP0\r\n"},
+    )
+    assert_contract(status, lines, left, "c.dat")
+    assert status == 2 and len(lines) == 1
