@@ -16,13 +16,14 @@ from typing import TYPE_CHECKING, Any
 
 from rover import __version__
 from rover.cli.registry import BUILTINS
-from rover.errors import BadInput, Interrupted, RoverError, SpecError
+from rover.errors import BadInput, Interrupted, PeerLost, RoverError, SpecError
 from rover.pipeline.yamlpos import parse_scalar
 
 if TYPE_CHECKING:
     from rover.formats.rig import Rig
     from rover.operators.aoa.calibration import Calibration
 
+EXIT_PARTIAL = 3
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
 
@@ -126,6 +127,56 @@ def cmd_graph(args: argparse.Namespace) -> int:
     pipeline = load_and_check(args.pipeline or default_pipeline(), BUILTINS, _overrides(args))
     sys.stdout.write(graph.dot(pipeline) if args.format == "dot" else graph.mermaid(pipeline))
     return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Live state of a running multi-host pipeline, from its hosts' status queryables. The file is
+    only parsed (not checked against the operator classes): a monitoring machine needs no operator code."""
+    import time
+
+    from rich.console import Console
+    from rich.live import Live
+
+    from rover.pipeline.spec import endpoint_problem, parse, read_document
+    from rover.runtime.status import HostStatus, collect, render
+    from rover.transport.monitor import StatusClient, local_endpoint
+
+    for option, value in (("--interval", args.interval), ("--timeout", args.timeout)):
+        if not 0 < value < math.inf:
+            raise BadInput(f"{option}: a number of seconds above 0, got {value:g}")
+    spec, problems = parse(read_document(args.pipeline), _overrides(args))
+    if problems:
+        raise SpecError(problems)
+    for endpoint in args.connect or []:
+        if problem := endpoint_problem(endpoint):
+            raise BadInput(f"--connect: {problem}")
+    listen = [local_endpoint(ep) for host in spec.hosts.values() for ep in host.listen]
+    endpoints = list(dict.fromkeys(args.connect or listen))
+    if not endpoints:
+        raise BadInput(f"{args.pipeline}: no host of pipeline {spec.name} listens on an endpoint: pass --connect")
+    expected = sorted({op.host for op in spec.operators.values() if op.host})
+    with StatusClient(spec.name, endpoints, args.timeout) as client:
+
+        def snapshot() -> tuple[dict[str, HostStatus], list[str]]:
+            statuses, notes = collect(client.query(), spec.name)
+            return statuses, notes + ([f"{client.errors} error replies"] if client.errors else [])
+
+        current, notes = snapshot()
+        if not current:
+            raise client.no_answer()
+        previous: dict[str, HostStatus] = {}
+        if args.once:  # rates from two snapshots --interval apart
+            time.sleep(args.interval)
+            later, notes = snapshot()
+            previous, current = current, {**current, **later}
+            Console().print(render(current, previous, expected, notes))
+            return 0
+        with Live(render(current, previous, expected, notes), auto_refresh=False) as live:
+            while True:  # until Ctrl-C: main() turns Interrupted into status 130
+                time.sleep(args.interval)
+                later, notes = snapshot()
+                previous, current = {**previous, **current}, later
+                live.update(render(current, previous, expected, notes), refresh=True)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -532,6 +583,17 @@ def parser() -> argparse.ArgumentParser:
     _add_set(p)
     p.set_defaults(func=cmd_graph)
 
+    p = command("status", help="live state of a running multi-host pipeline: hosts, rates, queues, lag, errors")
+    p.add_argument("pipeline", metavar="PIPELINE", help="the pipeline file the hosts run")
+    _add_set(p)
+    p.add_argument(
+        "--connect", action="append", metavar="ENDPOINT", help="ask through this endpoint (default: the hosts' listen)"
+    )
+    p.add_argument("--once", action="store_true", help="print one table (rates over --interval) and exit")
+    p.add_argument("--interval", type=float, default=1.0, help="seconds between refreshes (default 1)")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for a host to answer (default 5)")
+    p.set_defaults(func=cmd_status)
+
     p = command("convert", help="ROS 1/ROS 2 bags or a recording folder to a dataset")
     p.add_argument("sources", nargs="+", metavar="SRC", help=".bag, ROS 2 bag folder, .db3, .mcap, recording folder")
     p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
@@ -611,6 +673,9 @@ def main(argv: list[str] | None = None) -> int:
     except BadInput as exc:
         print(f"rover: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except PeerLost as exc:
+        print(f"rover: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_PARTIAL
     except RoverError as exc:
         print(f"rover: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_FAILED

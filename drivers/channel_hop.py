@@ -54,6 +54,8 @@ def run_command(argv: list[str]) -> None:
 class ChannelHop(Source):
     """Cycles through the sweep's channels, `dwell_s` on each."""
 
+    live = True
+
     outputs = {"hops": Out("rover_msgs/msg/ChannelHop")}
     Params = HopParams
 

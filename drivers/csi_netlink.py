@@ -89,6 +89,8 @@ class NetlinkParams(Checked):
 class CsiNetlink(Source):
     """Publishes every CSI record the NIC reports, stamped with the receive time."""
 
+    live = True
+
     outputs = {"csi": Out("rover_msgs/msg/CsiFrame")}
     Params = NetlinkParams
 

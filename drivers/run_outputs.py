@@ -10,8 +10,9 @@ they fit in the time left (`rover eval OUT --figures` writes the figures later).
 
 Files appear only once complete (written aside, renamed). A run first removes what an earlier run
 left in the folder, and a failed run leaves only `run.json`, which says how every run ended:
-its `status` (complete, partial, interrupted, failed), the `reason`, and what each operator
-received, sent and dropped.
+its `status` (complete, partial, interrupted, failed), the `reason`, the hosts `lost` during a
+partial run (each with its reason and the time it was noticed), and what each operator received,
+sent and dropped.
 """
 
 from __future__ import annotations
@@ -259,6 +260,7 @@ class RunOutputs(Operator):
         return {
             "status": outcome.status,
             "reason": outcome.reason,
+            "lost": [{"host": h.host, "reason": h.reason, "time": h.time} for h in outcome.lost],
             "dataset": dataset,
             "pipeline": pipeline,
             "command_line": dict(self.context.command_line),

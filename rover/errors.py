@@ -53,7 +53,8 @@ class OutputFailed(RoverError):
 
 
 class PeerLost(RoverError):
-    """Another host of a distributed run left before the end of the stream."""
+    """Another host of a distributed run was lost before it was done: this host's outputs are
+    finished and kept, but they cover only part of the run (run.json status `partial`)."""
 
 
 class Interrupted(BaseException):

@@ -81,6 +81,16 @@ class OperatorCounts:
 
 
 @dataclass(frozen=True)
+class LostHost:
+    """A host of a distributed run that left before it was done, as this host saw it."""
+
+    host: str
+    reason: str
+    time: str
+    """UTC, ISO 8601, when this host noticed"""
+
+
+@dataclass(frozen=True)
 class RunOutcome:
     """How the run ended, given to `Operator.close` and `Operator.report`."""
 
@@ -90,6 +100,8 @@ class RunOutcome:
     """per operator of this process"""
     deadline: float | None = None
     """`time.monotonic()` by which closing must be done (after an interrupt); None: no limit"""
+    lost: tuple[LostHost, ...] = ()
+    """the hosts lost during a `partial` run"""
 
     @property
     def keeps_outputs(self) -> bool:
@@ -187,8 +199,12 @@ class Source(Operator):
     """An operator with no inputs that produces messages (dataset replay, live drivers).
 
     `run` yields Emit items in non-decreasing stamp order, and Watermark items when it is
-    silent, until it is exhausted or `stop` is set.
+    silent, until it is exhausted or `stop` is set. A `live` source (a device) cannot wait for
+    slow consumers: their inboxes drop its oldest messages when full (counted); any other source
+    (a file) is made to wait, so nothing is lost.
     """
+
+    live: ClassVar[bool] = False
 
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         raise NotImplementedError

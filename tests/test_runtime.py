@@ -64,7 +64,7 @@ def wait_for(event: threading.Event, proc: subprocess.Popen) -> bool:
 def ready_event(session: zenoh.Session, pipeline: str, host: str) -> tuple[zenoh.Subscriber, threading.Event]:
     """An event set once the host declares its `ready` token, which it does after declaring its subscribers."""
     ready = threading.Event()
-    key = keys.host_token(pipeline, host, "ready")
+    key = f"{keys.PREFIX}/{pipeline}/{keys.HOSTS}/{host}/*/*/ready"
     return session.liveliness().declare_subscriber(key, lambda _sample: ready.set(), history=True), ready
 
 
@@ -359,9 +359,15 @@ def test_bad_inputs_are_one_line_and_status_2(tmp_path, dataset):
     nothing = run_rover("run", "--output", str(tmp_path / "o"), cwd=tmp_path)
     assert nothing.returncode == 2 and "no dataset given" in nothing.stderr
     port = free_port()
+    impatient = tmp_path / "impatient.yaml"
+    impatient.write_text(
+        TOY.replace(
+            'b: {connect: ["tcp/127.0.0.1:${port}"]}', 'b: {connect: ["tcp/127.0.0.1:${port}"], wait_timeout_s: 1.5}'
+        )
+    )
     unreachable = run_rover(
         "run",
-        str(pipeline),
+        str(impatient),
         "--host",
         "b",
         "--dataset",
@@ -371,8 +377,10 @@ def test_bad_inputs_are_one_line_and_status_2(tmp_path, dataset):
         timeout=60,
         cwd=tmp_path,
     )
+    impatient.unlink()
     assert unreachable.returncode == 2
-    assert f"cannot reach tcp/127.0.0.1:{port}" in unreachable.stderr
+    assert "gave up after 1.5 s (wait_timeout_s) waiting for host(s) a, c" in unreachable.stderr
+    assert f"b connects to tcp/127.0.0.1:{port}" in unreachable.stderr
     import socket
 
     with socket.socket() as busy:

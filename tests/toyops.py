@@ -106,6 +106,8 @@ class TickerParams:
 class Ticker(Source):
     """A live IMU-like source stamped with wall-clock time, like a driver on the robot."""
 
+    live = True
+
     outputs = {"imu": Out("sensor_msgs/msg/Imu"), "silent": Out("sensor_msgs/msg/Imu")}
     Params = TickerParams
 

@@ -27,9 +27,12 @@ PORT_RE = re.compile(r":(\d{1,5})$")
 MAX_PORT = 65535
 
 TOP_KEYS = ("version", "name", "description", "vars", "hosts", "operators")
-HOST_KEYS = ("listen", "connect", "connect_timeout_s")
+HOST_KEYS = ("listen", "connect", "host_timeout_s", "wait_timeout_s", "connect_timeout_s")
 OPERATOR_KEYS = ("uses", "host", "inputs", "params", "description")
-DEFAULT_CONNECT_TIMEOUT_S = 10.0
+DEFAULT_HOST_TIMEOUT_S = 15.0
+"""A host unreachable this long is lost (the run goes on without it: partial results)."""
+DEFAULT_WAIT_TIMEOUT_S = 120.0
+"""How long a host waits for the others to start (and retries its connections) before giving up."""
 
 
 def endpoint_problem(endpoint: Any) -> str | None:
@@ -66,7 +69,8 @@ class HostSpec:
     name: str
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
-    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S
+    host_timeout_s: float = DEFAULT_HOST_TIMEOUT_S
+    wait_timeout_s: float = DEFAULT_WAIT_TIMEOUT_S
 
 
 @dataclass
@@ -209,10 +213,14 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                     col.add(path + (kind, i), problem)
                 else:
                     getattr(host, kind).append(ep)
-        try:
-            host.connect_timeout_s = P.coerce(hval.get("connect_timeout_s", DEFAULT_CONNECT_TIMEOUT_S), P.PositiveFloat)
-        except P.ParamTypeError as exc:
-            col.add(path + ("connect_timeout_s",), f"connect_timeout_s: {exc}")
+        # connect_timeout_s is the older name of wait_timeout_s (hosts now retry connecting all that time)
+        timeouts = (("host_timeout_s", "host_timeout_s"), ("connect_timeout_s", "wait_timeout_s"))
+        for key, attr in (*timeouts, ("wait_timeout_s", "wait_timeout_s")):
+            if key in hval:
+                try:
+                    setattr(host, attr, P.coerce(hval[key], P.PositiveFloat))
+                except P.ParamTypeError as exc:
+                    col.add(path + (key,), f"{key}: {exc}")
         hosts[hname] = host
 
     operators: dict[str, OperatorSpec] = {}

@@ -6,7 +6,9 @@ the message type of every wire resolved, which is all the runtime needs.
 
 from __future__ import annotations
 
+import hashlib
 import ipaddress
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +62,19 @@ class Pipeline:
 
     def hosts_in_use(self) -> list[str]:
         return sorted({n.spec.host for n in self.nodes.values() if n.spec.host})
+
+    def digest(self) -> str:
+        """A short hash of the run's structure (name, hosts, placement, wiring): the hosts of one run
+        agree on it whatever their own variables (each has its own output folder, dataset path...)."""
+        structure = [
+            self.name,
+            sorted(self.spec.hosts),
+            [
+                [n.name, n.spec.uses, n.spec.host, sorted((p, w.text) for p, w in n.spec.inputs.items())]
+                for n in sorted(self.nodes.values(), key=lambda n: n.name)
+            ],
+        ]
+        return hashlib.sha256(json.dumps(structure).encode()).hexdigest()[:16]
 
     def consumers(self, source: str, port: str) -> list[tuple[Node, Wire]]:
         return [
@@ -227,6 +242,22 @@ def _reaches(connect: str, listen: str) -> bool:
     return ch == lh or _is_wildcard(lh) or not _is_ip(ch) or not _is_ip(lh)
 
 
+def _listeners(spec: PipelineSpec, host: str, endpoint: str) -> list[str]:
+    """The other hosts that listen where `host` connects with `endpoint`."""
+    return [b.name for b in spec.hosts.values() if b.name != host and any(_reaches(endpoint, lep) for lep in b.listen)]
+
+
+def host_links(spec: PipelineSpec) -> dict[str, set[str]]:
+    """Which hosts talk to each other directly: one connects where the other listens."""
+    links: dict[str, set[str]] = {h: set() for h in spec.hosts}
+    for a in spec.hosts.values():
+        for ep in a.connect:
+            for b in _listeners(spec, a.name, ep):
+                links[a.name].add(b)
+                links[b].add(a.name)
+    return links
+
+
 def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
     hosts = spec.hosts
     for op in spec.operators.values():
@@ -251,7 +282,6 @@ def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -
             )
     if len(hosts) < 2:
         return
-    links: dict[str, set[str]] = {h: set() for h in hosts}
     for a in hosts.values():
         raw = (doc.data.get("hosts") or {}).get(a.name) or {}
         if not a.listen and not a.connect and not ({"listen", "connect"} & set(raw)):
@@ -263,17 +293,14 @@ def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -
                 )
             )
         for i, ep in enumerate(a.connect):
-            targets = [b.name for b in hosts.values() if b is not a and any(_reaches(ep, lep) for lep in b.listen)]
-            if not targets:
+            if not _listeners(spec, a.name, ep):
                 problems.append(
                     doc.diag(
                         ("hosts", a.name, "connect", i),
                         f"host {a.name!r} connects to {ep}, where no declared host listens",
                     )
                 )
-            for b in targets:
-                links[a.name].add(b)
-                links[b].add(a.name)
+    links = host_links(spec)
     seen, todo = set(), [next(iter(hosts))]
     while todo:
         h = todo.pop()

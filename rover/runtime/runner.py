@@ -24,10 +24,13 @@ from typing import Any
 import zenoh
 
 from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError, TransportError
-from rover.messages import ANY, Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
+from rover.messages import Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, OperatorCounts, RunOutcome, Source, Watermark
-from rover.pipeline.validation import Node, Pipeline
+from rover.pipeline.validation import Node, Pipeline, host_links
+from rover.runtime.hosts import HostWatch, describe_loss
+from rover.runtime.inbox import Inbox, Policy
 from rover.runtime.scheduler import INF, EventTimeMerger
+from rover.runtime.status import HostStatus, OperatorStatus, status_key
 from rover.transport import codec, keys
 from rover.transport.session import SessionSpec, open_session
 
@@ -47,7 +50,7 @@ LEAVE_S = 10.0
 """The same after a failure, where no time was promised."""
 POLL_S = 0.05
 _KNOWN = typestore.fielddefs
-READY_LOG_S = 5.0
+INBOX_DROP = "inbox full (a live source's oldest) or after the operator ended"
 
 _SignalHandler = Callable[[int, FrameType | None], Any] | int | None
 """What signal.signal returns and takes back."""
@@ -111,11 +114,12 @@ class Output:
             )
             self.last_ns = self.mark_ns
 
-    def end(self) -> None:
+    def end(self, cut: bool) -> None:
+        """End of stream; `cut` when it ends before the end of the input (a stop, a lost host upstream)."""
         last = int(self.last_ns) if self.last_ns != -INF else 0
-        self.publisher.put(
-            b"", encoding=codec.control_encoding(), attachment=codec.attachment(codec.Kind.END, last, self.mark_ns)
-        )
+        kind = codec.Kind.CUT if cut else codec.Kind.END
+        att = codec.attachment(kind, last, self.mark_ns)
+        self.publisher.put(b"", encoding=codec.control_encoding(), attachment=att)
 
 
 class Task:
@@ -137,6 +141,12 @@ class Task:
         self.stop = stop
         self.abort = abort
         self.error: BaseException | None = None
+        self.cut_inputs: set[str] = set()
+        """input ports whose stream was cut short (its producer stopped, or its host was lost)"""
+        self.handled_ns: int | None = None
+        """stamp of the last message handled (for `rover status`)"""
+        self.input_ns: int | None = None
+        """latest stamp received on any input"""
         self.done = threading.Event()
         self.outputs = {
             port: Output(session, keys.port_key(pipeline, node.name, port), out.type)
@@ -151,10 +161,15 @@ class Task:
             self.error = exc
             self.stop.set()
         finally:
+            cut = self.stop.is_set() or self.abort.is_set() or bool(self.cut_inputs)
             for out in self.outputs.values():
                 with contextlib.suppress(zenoh.ZError):
-                    out.end()
+                    out.end(cut)
+            self.release()
             self.done.set()
+
+    def release(self) -> None:
+        """Let go of what producers may be waiting on, once this task handles nothing more."""
 
     def run(self) -> None:
         raise NotImplementedError
@@ -200,6 +215,7 @@ class SourceTask(Task):
             else:
                 stamp = item.stamp_ns if item.stamp_ns is not None else stamp_ns(item.msg)
                 clock = max(clock, stamp)
+                self.handled_ns = self.input_ns = clock
                 for out in self.outputs.values():
                     out.promise(clock)
                 self.publish((item._replace(stamp_ns=stamp),), clock)
@@ -210,6 +226,9 @@ class SourceTask(Task):
 
 
 class OperatorTask(Task):
+    """Runs an operator's handler on its inputs, in event-time order. `wire_types` is the declared
+    type of the output each input port is wired to: anything else on that key is dropped."""
+
     def __init__(
         self,
         node: Node,
@@ -218,22 +237,32 @@ class OperatorTask(Task):
         session: zenoh.Session,
         stop: threading.Event,
         abort: threading.Event,
+        wire_types: dict[str, str],
+        policies: dict[str, Policy],
     ):
         super().__init__(node, op, pipeline, session, stop, abort)
-        self.inbox: queue.SimpleQueue[tuple[str, str, bytes, bytes | None]] = queue.SimpleQueue()
+        self.wire_types = wire_types
+        self.policies = policies
+        self.inbox: Inbox[tuple[str, bytes, bytes | None]] = Inbox()
         self.merger = EventTimeMerger(list(node.spec.inputs))
         self.ports = {port: spec for port in node.spec.inputs if (spec := node.cls.input_spec(port)) is not None}
         self.subscribers = [
-            session.declare_subscriber(keys.port_key(pipeline, wire.source, wire.source_port), self._enqueue_for(port))
+            session.declare_subscriber(
+                keys.port_key(pipeline, wire.source, wire.source_port),
+                zenoh.handlers.Callback(self._enqueue_for(port), indirect=False),
+            )
             for port, wire in node.spec.inputs.items()
         ]
 
     def _enqueue_for(self, port: str) -> Callable[[zenoh.Sample], None]:
-        inbox = self.inbox
+        inbox, policy = self.inbox, self.policies[port]
 
         def enqueue(sample: zenoh.Sample) -> None:
+            """Runs in the producer's thread (or Zenoh's receive thread): a full inbox makes it wait."""
             att = sample.attachment
-            inbox.put((port, str(sample.encoding), sample.payload.to_bytes(), att.to_bytes() if att else None))
+            raw = att.to_bytes() if att else None
+            item = (str(sample.encoding), sample.payload.to_bytes(), raw)
+            inbox.put(port, item, control=codec.is_control(raw), policy=policy)
 
         return enqueue
 
@@ -243,22 +272,39 @@ class OperatorTask(Task):
         if n == 1 or n % 1000 == 0:
             log.warning("operator %r, input %r: dropped %d message(s): %s", self.name, port, n, reason)
 
+    def release(self) -> None:
+        self.inbox.close()
+
+    def count_inbox_drops(self) -> None:
+        """Add what the inbox dropped (a live source's oldest, or anything after this task ended) to the stats."""
+        for port, n in self.inbox.dropped.items():
+            self.stats.dropped[f"{port}:{INBOX_DROP}"] += n
+
+    def cut(self, port: str) -> None:
+        """End an input's stream here: its producer's host was lost (what is queued is still handled)."""
+        self.inbox.put(port, ("", b"", codec.attachment(codec.Kind.CUT, 0, 0)), control=True)
+
     def _accept(self, port: str, encoding: str, payload: bytes, att: bytes | None) -> None:
         try:
             kind, stamp, mark = codec.read_attachment(att)
         except codec.CodecError as exc:
             self._drop(port, str(exc))
             return
-        if kind == codec.Kind.END:
+        if kind in (codec.Kind.END, codec.Kind.CUT):
+            if kind == codec.Kind.CUT:
+                self.cut_inputs.add(port)
             self.merger.end(port)
+            return
+        if self.merger.ended(port):
+            self._drop(port, "after the end of its stream (its host was lost)")
             return
         self.merger.watermark(port, mark)
         if kind == codec.Kind.WATERMARK:
             return
         spec = self.ports[port]
         typename = codec.schema_of(encoding)
-        if spec.type != ANY and typename != spec.type:
-            self._drop(port, f"type {typename or 'unknown'} where {spec.type} was expected")
+        if typename != self.wire_types[port]:
+            self._drop(port, f"type {typename or 'unknown'} where {self.wire_types[port]} was expected")
             return
         if spec.raw:
             msg = Raw(typename, payload) if _plausible_cdr(payload, typename, stamp) else None
@@ -271,6 +317,7 @@ class OperatorTask(Task):
             self._drop(port, f"bytes that do not decode as {typename or spec.type}")
             return
         self.stats.received[port] += 1
+        self.input_ns = stamp if self.input_ns is None else max(self.input_ns, stamp)
         self.merger.push(port, stamp, msg)
 
     def run(self) -> None:
@@ -280,14 +327,15 @@ class OperatorTask(Task):
             if self.abort.is_set():
                 return
             try:
-                item = self.inbox.get(timeout=POLL_S)
+                port, (encoding, payload, att) = self.inbox.get(timeout=POLL_S)
             except queue.Empty:
                 continue
-            self._accept(*item)
+            self._accept(port, encoding, payload, att)
             for port, stamp, msg in merger.pop_ready():
                 if self.abort.is_set():
                     return
                 self.publish(op.on_input(port, msg, stamp), stamp)
+                self.handled_ns = stamp
             self.advance(merger.safe_time() - op.lateness_s * 1e9)
         self.publish(op.on_end(), self.last_stamp())
 
@@ -367,20 +415,24 @@ class Runner:
         self.stopped_at: float | None = None
         """`time.monotonic()` of the first interrupt"""
         self.tasks: list[Task] = []
-        self._host_states: dict[str, set[str]] = {"ready": set(), "done": set(), "lost": set()}
-        self._host_lock = threading.Condition()
+        self.watch: HostWatch | None = None
+        self.state = "waiting"
+        self.started = time.monotonic()
 
     def session_spec(self) -> SessionSpec:
         if not self.distributed or self.host is None:
             return SessionSpec()
         h = self.pipeline.spec.hosts[self.host]
-        return SessionSpec(h.listen, h.connect, h.connect_timeout_s, self.host)
+        return SessionSpec(h.listen, h.connect, h.host_timeout_s, self.host)
 
     def request_stop(self, signum: int) -> None:
-        """The first signal stops the run; later ones change nothing (the outputs are being finished)."""
-        if self.stopped_at is None:
-            self.stopped_at = time.monotonic()
-            self.interrupted = signum
+        """The first signal stops the run; later ones change nothing (the outputs are being finished).
+        A later one must not touch the stop event either: it may interrupt the first one's `set`,
+        which holds the event's lock (a second `set` would then wait for it forever)."""
+        if self.stopped_at is not None:
+            return
+        self.stopped_at = time.monotonic()
+        self.interrupted = signum
         self.stop.set()
 
     def run(self) -> int:
@@ -441,6 +493,8 @@ class Runner:
                 log.error("operator %r could not report the run: %s", name, problem)
         if error is not None:
             raise error
+        if outcome.status == "partial":
+            raise PeerLost(f"host {self.host}: {outcome.reason}")
         return 128 + self.interrupted if outcome.status == "interrupted" and self.interrupted else 0
 
     @staticmethod
@@ -477,6 +531,14 @@ class Runner:
         if self.interrupted:
             deadline = (self.stopped_at or time.monotonic()) + STOP_BUDGET_S
             return RunOutcome("interrupted", self._stop_reason(), counts, deadline)
+        lost = dict(self.watch.lost) if self.watch is not None else {}
+        cut = sorted(f"{t.name}.{port}" for t in self.tasks for port in t.cut_inputs)
+        if lost or cut:
+            if lost:
+                reason = describe_loss(host_links(self.pipeline.spec), self.host or "", lost)
+            else:
+                reason = f"input(s) {', '.join(cut)} ended early: a host upstream was stopped or lost"
+            return RunOutcome("partial", f"results are partial: {reason}", counts, lost=tuple(lost.values()))
         return RunOutcome("complete", "", counts)
 
     def _stop_reason(self) -> str:
@@ -505,7 +567,11 @@ class Runner:
         name = self.pipeline.name
         args = (name, session, self.stop, self.abort)
         try:
-            self.tasks = [OperatorTask(n, ops[n.name], *args) for n in self.nodes if not issubclass(n.cls, Source)]
+            self.tasks = [
+                OperatorTask(n, ops[n.name], *args, self._wire_types(n), self._policies(n))
+                for n in self.nodes
+                if not issubclass(n.cls, Source)
+            ]
             self.tasks += [SourceTask(n, ops[n.name], *args) for n in self.nodes if issubclass(n.cls, Source)]
             if self.distributed:
                 self._run_with_hosts(session)
@@ -518,7 +584,13 @@ class Runner:
                 if task.thread.ident is not None:
                     task.thread.join(timeout=max(0.0, joined_by - time.monotonic()))
             for task in self.tasks:
-                log.log(logging.WARNING if task.stats.dropped else logging.INFO, "%s", task.stats.line(task.name))
+                queue_line = ""
+                if isinstance(task, OperatorTask):
+                    task.release()
+                    task.count_inbox_drops()
+                    queue_line = f"; queue high-water {task.inbox.high_water} of {task.inbox.capacity}"
+                line = task.stats.line(task.name) + queue_line
+                log.log(logging.WARNING if task.stats.dropped else logging.INFO, "%s", line)
                 _report_drops(task)
         failed = next((t for t in self.tasks if t.error is not None), None)
         if failed is not None:
@@ -529,23 +601,103 @@ class Runner:
                 f"operator {failed.name!r} ({failed.node.spec.uses}) failed: {type(exc).__name__}: {exc}"
             ) from exc
 
+    def _wire_types(self, node: Node) -> dict[str, str]:
+        """The declared type of the output each input port of `node` is wired to."""
+        nodes = self.pipeline.nodes
+        return {port: nodes[w.source].output_type(w.source_port) for port, w in node.spec.inputs.items()}
+
+    def _policies(self, node: Node) -> dict[str, Policy]:
+        """Per input port: a stream that a live source feeds drops its oldest when the inbox is full;
+        any other (a replay) makes its producer wait, so nothing is lost."""
+        nodes = self.pipeline.nodes
+
+        def live(name: str) -> bool:
+            n = nodes[name]
+            if issubclass(n.cls, Source):
+                return n.cls.live
+            return any(live(w.source) for w in n.spec.inputs.values())
+
+        return {port: "drop_oldest" if live(w.source) else "block" for port, w in node.spec.inputs.items()}
+
+    def status(self) -> HostStatus:
+        """This host's snapshot for `rover status`."""
+        watch = self.watch
+        operators = []
+        for task in self.tasks:
+            dropped = dict(task.stats.dropped)
+            queue, high = 0, 0
+            if isinstance(task, OperatorTask):
+                queue, high = task.inbox.depth, task.inbox.high_water
+                for port, n in task.inbox.dropped.items():
+                    dropped[f"{port}:{INBOX_DROP}"] = n
+            operators.append(
+                OperatorStatus(
+                    task.name,
+                    task.node.spec.uses,
+                    dict(task.stats.received),
+                    dict(task.stats.sent),
+                    dropped,
+                    queue,
+                    high,
+                    task.handled_ns,
+                    task.input_ns,
+                    _described(task.error) if isinstance(task.error, Exception) else "",
+                )
+            )
+        return HostStatus(
+            self.pipeline.name,
+            self.host or "",
+            self.state,
+            sorted(watch.waiting_for()) if watch else [],
+            sorted(watch.lost) if watch else [],
+            time.monotonic() - self.started,
+            time.time(),
+            operators,
+        )
+
+    def _answer_status(self, query: zenoh.Query) -> None:
+        with contextlib.suppress(zenoh.ZError):
+            query.reply(query.key_expr, self.status().to_json())
+
     def _run_with_hosts(self, session: zenoh.Session) -> None:
-        """Start once every host has subscribed; leave once every host is done."""
-        name = self.pipeline.name
+        """Start once every host has subscribed; leave once every host is done or lost. A lost host's
+        streams are ended here (`OperatorTask.cut`), so the operators finish on what they have."""
         assert self.host is not None, "a distributed run has a host"
-        liveliness = session.liveliness()
-        watcher = liveliness.declare_subscriber(keys.host_tokens(name), self._on_host_token, history=True)
-        ready = liveliness.declare_token(keys.host_token(name, self.host, "ready"))
+        spec = self.pipeline.spec.hosts[self.host]
+        wanted = self.pipeline.hosts_in_use()
+        hosts = self.pipeline.spec.hosts
+        self.watch = watch = HostWatch(
+            session, self.pipeline.name, self.host, hosts, self.pipeline.digest(), spec.host_timeout_s
+        )
+        watch.on_lost = self._cut_streams_of
+        status = session.declare_queryable(status_key(self.pipeline.name, self.host), self._answer_status)
         try:
-            self._wait_hosts("ready")
+            watch.declare("ready")
+            hint = f" ({self.host} connects to {', '.join(spec.connect)}: is the host listening there running?)"
+            if not watch.wait_ready(wanted, self.stop, spec.wait_timeout_s, hint if spec.connect else ""):
+                return
+            self.state = "running"
             self._start_and_wait()
             if not self.abort.is_set():
-                done = liveliness.declare_token(keys.host_token(name, self.host, "done"))
-                self._wait_hosts("done")
-                done.undeclare()
+                self.state = "finishing"
+                watch.declare("done")
+                watch.wait_done(wanted, self.stop)
+            self.state = "done"
         finally:
-            ready.undeclare()
-            watcher.undeclare()
+            if self.interrupted:
+                with contextlib.suppress(zenoh.ZError):
+                    watch.say_bye(self._stop_reason())
+            status.undeclare()
+            watch.close()
+
+    def _cut_streams_of(self, host: str) -> None:
+        """End every input stream that comes from an operator on `host`."""
+        nodes = self.pipeline.nodes
+        for task in self.tasks:
+            if isinstance(task, OperatorTask):
+                for port, wire in task.node.spec.inputs.items():
+                    if nodes[wire.source].spec.host == host:
+                        task.cut(port)
 
     def _start_and_wait(self) -> None:
         for task in self.tasks:
@@ -561,37 +713,8 @@ class Runner:
                 if deadline is not None and time.monotonic() > deadline:
                     self.abort.set()
                     break
-                if self._host_states["lost"]:
-                    lost = ", ".join(sorted(self._host_states["lost"]))
-                    self.abort.set()
-                    raise PeerLost(f"host {lost} left before the end of the stream")
                 bar.update()
                 time.sleep(POLL_S)
-
-    def _on_host_token(self, sample: zenoh.Sample) -> None:
-        host, state = keys.parse_host_token(str(sample.key_expr))
-        with self._host_lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._host_states.setdefault(state, set()).add(host)
-            elif state == "ready" and host not in self._host_states["done"]:
-                self._host_states["lost"].add(host)
-            self._host_lock.notify_all()
-
-    def _wait_hosts(self, state: str) -> None:
-        wanted = set(self.pipeline.hosts_in_use())
-        last_log = time.monotonic()
-        with self._host_lock:
-            while not wanted <= self._host_states[state]:
-                if self.stop.is_set():
-                    return
-                if self._host_states["lost"] and state == "done":
-                    lost = ", ".join(sorted(self._host_states["lost"]))
-                    raise PeerLost(f"host {lost} left before the end of the stream")
-                if time.monotonic() - last_log > READY_LOG_S:
-                    missing = ", ".join(sorted(wanted - self._host_states[state]))
-                    log.info("host %s: waiting for host(s) %s to be %s", self.host, missing, state)
-                    last_log = time.monotonic()
-                self._host_lock.wait(timeout=POLL_S)
 
 
 def run(pipeline: Pipeline, host: str | None = None) -> int:

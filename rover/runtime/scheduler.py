@@ -33,6 +33,9 @@ class EventTimeMerger:
     def end(self, port: str) -> None:
         self._ended.add(port)
 
+    def ended(self, port: str) -> bool:
+        return port in self._ended
+
     @property
     def finished(self) -> bool:
         return len(self._ended) == len(self._ports) and not any(self._queues.values())

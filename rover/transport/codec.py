@@ -1,5 +1,5 @@
 """What travels with each Zenoh sample: CDR payload, the type name in the encoding, and a small
-attachment with the sample kind (data, watermark, end of stream), its event time, and the
+attachment with the sample kind (data, watermark, end of stream, stream cut short), its event time, and the
 producer's watermark (nothing it sends later on this key is stamped earlier)."""
 
 from __future__ import annotations
@@ -17,6 +17,9 @@ class Kind(IntEnum):
     DATA = 0
     WATERMARK = 1
     END = 2
+    """end of stream: the producer went through all its input"""
+    CUT = 3
+    """end of stream before the end: the producer (or a host upstream of it) was stopped or lost"""
 
 
 class CodecError(ValueError):
@@ -41,9 +44,14 @@ def read_attachment(raw: bytes | None) -> tuple[Kind, int, int]:
     if raw is None or len(raw) != _ATTACHMENT.size:
         raise CodecError("missing or malformed Rover attachment")
     magic, kind, stamp, mark = _ATTACHMENT.unpack(raw)
-    if magic != _MAGIC or kind > Kind.END:
+    if magic != _MAGIC or kind > Kind.CUT:
         raise CodecError("not a Rover sample")
     return Kind(kind), stamp, mark
+
+
+def is_control(raw: bytes | None) -> bool:
+    """Whether an attachment is a Rover watermark or end of stream (cheap: no full parse)."""
+    return raw is not None and len(raw) == _ATTACHMENT.size and raw[:4] == _MAGIC and raw[4] != Kind.DATA
 
 
 def schema_of(encoding_text: str) -> str:

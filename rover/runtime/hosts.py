@@ -1,0 +1,203 @@
+"""The hosts of a distributed run as one host sees them: waiting for them, and noticing the ones lost.
+
+Every host declares a liveliness token when it is ready (its subscribers declared) and another when
+it is done, and watches everybody's. Zenoh withdraws a process's tokens when it exits, crashes, or
+stays unreachable past the transport lease (`host_timeout_s`), so a `ready` token withdrawn before
+its `done` is a lost host. When the host that the others reach each other through (the hub) goes,
+everybody behind it goes with it; `describe_loss` says so from the link graph of the pipeline file.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Collection, Mapping
+from datetime import UTC, datetime
+
+import zenoh
+
+from rover.errors import TransportError
+from rover.operator import LostHost
+from rover.transport import keys
+
+log = logging.getLogger("rover")
+
+POLL_S = 0.05
+WAIT_LOG_FIRST_S = 2.0
+"""A host that waits says so after this long (a normal start takes less), then every WAIT_LOG_S."""
+WAIT_LOG_S = 5.0
+
+
+def unreachable_without(links: Mapping[str, Collection[str]], me: str, gone: str) -> set[str]:
+    """The hosts `me` can no longer reach once `gone` is gone (`gone` itself not included)."""
+    seen, todo = {me, gone}, [me]
+    while todo:
+        for other in links.get(todo.pop(), ()):
+            if other not in seen:
+                seen.add(other)
+                todo.append(other)
+    return set(links) - seen
+
+
+def describe_loss(links: Mapping[str, Collection[str]], me: str, lost: Mapping[str, LostHost]) -> str:
+    """One sentence for the lost hosts: a hub with the hosts that became unreachable with it, then the rest."""
+    explained: set[str] = set()
+    parts = []
+    for name in sorted(lost):
+        behind = sorted(unreachable_without(links, me, name) & set(lost))
+        if behind:
+            explained |= {name, *behind}
+            parts.append(
+                f"hub {name} was lost ({lost[name].reason}); host{'s' if len(behind) > 1 else ''} "
+                f"{', '.join(behind)} became unreachable with it"
+            )
+    parts += [f"host {name} was lost ({lost[name].reason})" for name in sorted(set(lost) - explained)]
+    return "; ".join(parts)
+
+
+class HostWatch:
+    """Presence of every host of one run, from this host's session."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        pipeline: str,
+        me: str,
+        hosts: Collection[str],
+        digest: str,
+        host_timeout_s: float,
+    ):
+        self.session = session
+        self.pipeline = pipeline
+        self.me = me
+        self.hosts = set(hosts)
+        self.digest = digest
+        self.zid = str(session.zid())
+        self.host_timeout_s = host_timeout_s
+        self.ready: dict[str, str] = {}
+        """host -> the zid of the process that is that host"""
+        self.done: set[str] = set()
+        self.lost: dict[str, LostHost] = {}
+        self.byes: dict[str, str] = {}
+        self.running = False
+        self.on_lost: Callable[[str], None] = lambda _host: None
+        self._wanted: set[str] = set(hosts)
+        self._warned: set[str] = set()
+        self._cond = threading.Condition()
+        self._tokens: list[zenoh.LivelinessToken] = []
+        self._subscribers = [
+            session.liveliness().declare_subscriber(keys.host_tokens(pipeline), self._on_token, history=True),
+            session.declare_subscriber(keys.host_tokens(pipeline), self._on_bye),
+        ]
+
+    def _key(self, state: str) -> str:
+        return keys.host_token(self.pipeline, keys.HostKey(self.me, self.digest, self.zid, state))
+
+    def declare(self, state: str) -> None:
+        self._tokens.append(self.session.liveliness().declare_token(self._key(state)))
+
+    def say_bye(self, reason: str) -> None:
+        """Tell the others why this host leaves (they then report it, not a crash)."""
+        self.session.put(self._key("bye"), reason.encode())
+
+    def close(self) -> None:
+        for token in self._tokens:
+            token.undeclare()
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
+        self._tokens, self._subscribers = [], []
+
+    def _parse(self, key: str) -> keys.HostKey | None:
+        """The key's parts when it comes from a host of this run; others are reported once and ignored."""
+        parsed = keys.parse_host_token(self.pipeline, key)
+        if parsed is not None and parsed.host in self.hosts and parsed.digest == self.digest:
+            return parsed
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning(
+                "host %s: ignored the presence token %s: not from a host of this run (another pipeline, "
+                "another version of this one, or a process that is not Rover)",
+                self.me,
+                key,
+            )
+        return None
+
+    def _on_bye(self, sample: zenoh.Sample) -> None:
+        parsed = self._parse(str(sample.key_expr))
+        if parsed is None or parsed.state != "bye":
+            return
+        reason = " ".join(sample.payload.to_bytes().decode("utf-8", "replace").split())[:200]
+        with self._cond:
+            if self.ready.get(parsed.host) == parsed.zid:
+                self.byes[parsed.host] = reason or "stopped"
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        parsed = self._parse(str(sample.key_expr))
+        if parsed is None or parsed.zid == self.zid:
+            return
+        if parsed.host == self.me:
+            if parsed.state == "ready" and sample.kind == zenoh.SampleKind.PUT:
+                log.warning("host %s: another process (zid %s) also runs as this host: ignored", self.me, parsed.zid)
+            return
+        lost_now = None
+        with self._cond:
+            host, owner = parsed.host, self.ready.get(parsed.host)
+            if sample.kind == zenoh.SampleKind.PUT:
+                if parsed.state == "ready" and owner is None and host not in self.lost:
+                    self.ready[host] = parsed.zid
+                elif parsed.state == "ready" and owner != parsed.zid:
+                    log.warning("host %s: a second process claims host %s (zid %s): ignored", self.me, host, parsed.zid)
+                elif parsed.state == "done" and owner == parsed.zid:
+                    self.done.add(host)
+            elif parsed.state == "ready" and owner == parsed.zid and host not in self.done:
+                if self.running:
+                    reason = self.byes.get(host) or (
+                        f"gone without a word: it crashed, or was unreachable for more than {self.host_timeout_s:g} s"
+                    )
+                    self.lost[host] = LostHost(host, reason, datetime.now(UTC).isoformat(timespec="seconds"))
+                    lost_now = host
+                else:
+                    del self.ready[host]
+                    log.warning("host %s: host %s left before the run began; waiting for it again", self.me, host)
+            self._cond.notify_all()
+        if lost_now is not None:
+            log.warning("host %s: host %s was lost (%s)", self.me, lost_now, self.lost[lost_now].reason)
+            self.on_lost(lost_now)
+
+    def waiting_for(self) -> set[str]:
+        """The hosts not ready yet (before the run) or not done yet (after this host's part ended)."""
+        with self._cond:
+            wanted = self._wanted
+            pending = wanted - set(self.ready) if not self.running else wanted - self.done - set(self.lost)
+            return pending - {self.me}
+
+    def wait_ready(self, wanted: Collection[str], stop: threading.Event, timeout_s: float, hint: str) -> bool:
+        """Wait until every wanted host is ready, saying whom it waits for; False when stopped first.
+        Raises TransportError naming the missing hosts after `timeout_s`."""
+        self._wanted = set(wanted)
+        started = time.monotonic()
+        next_log = started + WAIT_LOG_FIRST_S
+        with self._cond:
+            while not set(wanted) - {self.me} <= set(self.ready):
+                if stop.is_set():
+                    return False
+                missing = ", ".join(sorted(set(wanted) - set(self.ready) - {self.me}))
+                waited = time.monotonic() - started
+                if waited > timeout_s:
+                    raise TransportError(
+                        f"host {self.me}: gave up after {timeout_s:g} s (wait_timeout_s) waiting for host(s) "
+                        f"{missing}{hint}"
+                    )
+                if time.monotonic() > next_log:
+                    log.warning("host %s: waiting for host(s) %s (%.0f s of %g s)", self.me, missing, waited, timeout_s)
+                    next_log += WAIT_LOG_S
+                self._cond.wait(timeout=POLL_S)
+            self.running = True
+        return True
+
+    def wait_done(self, wanted: Collection[str], stop: threading.Event) -> None:
+        """Wait until every wanted host that was not lost is done (or this host is stopped)."""
+        with self._cond:
+            while not set(wanted) - {self.me} - set(self.lost) <= self.done and not stop.is_set():
+                self._cond.wait(timeout=POLL_S)

@@ -1,0 +1,118 @@
+"""Asking the hosts of a running pipeline for their status, as a Zenoh client of any one of them.
+
+The client connects to one reachable endpoint (explicit endpoints only, no scouting); that host's
+router forwards the query to every host of the pipeline, so one connection sees them all.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import time
+from types import TracebackType
+
+import zenoh
+
+from rover.errors import TransportError
+from rover.runtime.status import status_selector
+
+log = logging.getLogger("rover.status")
+
+RETRY_S = 0.1
+"""pause between two rounds of connection attempts while the timeout lasts"""
+WILDCARDS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
+
+
+def local_endpoint(endpoint: str) -> str:
+    """A listen endpoint as a client reaches it: a wildcard address (0.0.0.0, [::]) becomes loopback."""
+    match = re.match(r"^([a-z-]+/)(0\.0\.0\.0|\[::\])(:.*)$", endpoint)
+    return f"{match[1]}{WILDCARDS[match[2]]}{match[3]}" if match else endpoint
+
+
+def _client_config(endpoints: list[str], open_timeout_s: float) -> zenoh.Config:
+    """Client mode, scouting off. One attempt per endpoint (`timeout_ms` 0): with a longer timeout a
+    client keeps retrying the first endpoint alone and never tries the others; we retry ourselves."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps(endpoints))
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    conf.insert_json5("connect/timeout_ms", "0")
+    conf.insert_json5("connect/exit_on_failure", "true")
+    conf.insert_json5("transport/unicast/open_timeout", str(max(1, int(open_timeout_s * 1000))))
+    return conf
+
+
+class StatusClient:
+    """One Zenoh session to a running pipeline, opened once and queried at every refresh.
+
+    Opening retries every endpoint until `timeout_s`; when none is reachable it raises the same
+    TransportError as a query nobody answers (`no_answer`)."""
+
+    def __init__(self, pipeline: str, endpoints: list[str], timeout_s: float = 5.0):
+        self.pipeline = pipeline
+        self.endpoints = list(endpoints)
+        self.timeout_s = timeout_s
+        self.errors = 0
+        """error replies to the last query"""
+        self._session = self._open()
+
+    def _open(self) -> zenoh.Session:
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            try:
+                return zenoh.open(_client_config(self.endpoints, max(deadline - time.monotonic(), RETRY_S)))
+            except zenoh.ZError as exc:
+                log.debug("cannot connect to %s: %s", ", ".join(self.endpoints), exc)
+            if time.monotonic() + RETRY_S >= deadline:
+                raise self.no_answer()
+            time.sleep(RETRY_S)
+
+    def no_answer(self) -> TransportError:
+        """The error for a pipeline none of whose hosts answered."""
+        return TransportError(
+            f"no host of pipeline {self.pipeline} answered at {', '.join(self.endpoints)} (is it running?)"
+        )
+
+    def query(self) -> list[bytes]:
+        """Every host's status payload (possibly none); error replies are left out and counted in `errors`."""
+        payloads: list[bytes] = []
+        errors = 0
+        try:
+            replies = self._session.get(
+                status_selector(self.pipeline),
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=self.timeout_s,
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    payloads.append(reply.ok.payload.to_bytes())
+                else:
+                    errors += 1
+        except zenoh.ZError as exc:
+            raise TransportError(f"querying {', '.join(self.endpoints)}: {str(exc).split(' at /')[0]}") from None
+        self.errors = errors
+        return payloads
+
+    def close(self) -> None:
+        self._session.close()
+
+    def __enter__(self) -> StatusClient:
+        return self
+
+    def __exit__(
+        self, _type: type[BaseException] | None, _value: BaseException | None, _tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def query_status(pipeline: str, endpoints: list[str], timeout_s: float) -> list[bytes]:
+    """The status payloads of a pipeline's hosts, asked once; TransportError when no host answers."""
+    with StatusClient(pipeline, endpoints, timeout_s) as client:
+        payloads = client.query()
+        if not payloads:
+            raise client.no_answer()
+        return payloads
