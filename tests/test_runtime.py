@@ -312,12 +312,23 @@ def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_p
                 attachment=codec.attachment(codec.Kind.DATA, 0, 0),
                 congestion_control=block,
             )
+            # A valid message of another type for the recorder, whose inputs take any type: the
+            # wire says pass/imu is sensor_msgs/msg/Imu, so it never reaches the recorder.
+            foreign.put(
+                "rover/live/pass/imu",
+                serialize(make("std_msgs/msg/String", data="not an IMU")),
+                encoding=codec.encoding("std_msgs/msg/String"),
+                attachment=codec.attachment(codec.Kind.DATA, 0, 0),
+                congestion_control=block,
+            )
         _out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 150
     assert "imu:missing or malformed Rover attachment=5" in err
     assert "imu:bytes that do not decode as sensor_msgs/msg/Imu=5" in err
     assert "imu:type std_msgs/msg/String where sensor_msgs/msg/Imu was expected=5" in err
+    record = next(line for line in err.splitlines() if "record: in" in line)
+    assert "imu:type std_msgs/msg/String where sensor_msgs/msg/Imu was expected=5" in record
 
 
 def test_a_failing_operator_is_one_line_and_status_1(tmp_path, dataset):

@@ -200,6 +200,28 @@ def test_cli_check_good_file_one_line(tmp_path):
     assert len(lines) == 2 and all(": ok: pipeline" in line for line in lines)
 
 
+def test_check_names_the_hub_the_other_hosts_depend_on(tmp_path):
+    """The default file's NUC is the only listener: a single point of failure, and `rover check` says so;
+    with base listening too and the laptop connecting to both, there is no hub."""
+    hub = run_rover("check", str(ROOT / "pipeline.yaml"))
+    assert hub.returncode == 0 and "hub nuc: base and laptop reach each other only through it" in hub.stdout
+    mesh = (
+        (ROOT / "pipeline.yaml")
+        .read_text()
+        .replace(
+            'base:   {connect: ["tcp/127.0.0.1:${port}"]}',
+            'base:   {listen: ["tcp/127.0.0.1:7448"], connect: ["tcp/127.0.0.1:${port}"]}',
+        )
+    )
+    mesh = mesh.replace(
+        'laptop: {connect: ["tcp/127.0.0.1:${port}"]}',
+        'laptop: {connect: ["tcp/127.0.0.1:${port}", "tcp/127.0.0.1:7448"]}',
+    )
+    (tmp_path / "mesh.yaml").write_text(mesh)
+    checked = run_rover("check", str(tmp_path / "mesh.yaml"))
+    assert checked.returncode == 0 and ": ok:" in checked.stdout and "; hub" not in checked.stdout
+
+
 def test_cli_missing_file(tmp_path):
     proc = run_rover("check", str(tmp_path / "nope.yaml"))
     assert proc.returncode == 2 and "nope.yaml: no such file" in proc.stderr
@@ -210,11 +232,12 @@ version: 1
 name: toy
 vars: {port: 99999}
 hosts:
-  nuc: {listen: ["tcp/127.0.0.1:${port}"], connect_timeout_s: .inf}
-  laptop: {connect: ["tcp/127.0.0.1:7447"], connect_timeout_s: 0}
+  nuc: {listen: ["tcp/127.0.0.1:${port}"], connect_timeout_s: .inf, host_timeout_s: -3}
+  laptop: {connect: ["tcp/127.0.0.1:7447"], connect_timeout_s: 0, wait_timeout_s: soon}
 operators:
   replay: {uses: dataset_replay, host: nuc, params: {path: data.mcap, speed: -1}}
-  sweep: {uses: channel_sweep, host: laptop, inputs: {frames: replay/csi, setup: replay/setup}, params: {dwell_s: 0}}
+  sweep: {uses: channel_sweep, host: laptop, inbox: 0, inputs: {frames: replay/csi, setup: replay/setup},
+          params: {dwell_s: 0}}
 """
 
 
@@ -231,7 +254,10 @@ def test_check_rejects_out_of_range_values_with_their_positions(tmp_path):
 
     reported('"tcp/127.0.0.1:${port}"', "port 99999 is outside 1-65535")
     reported(".inf", "connect_timeout_s", "finite")
-    reported("0}\noperators", "connect_timeout_s", "must be > 0")
+    reported("0, wait", "connect_timeout_s", "must be > 0")
+    reported("-3}", "host_timeout_s", "must be > 0")
+    reported("soon}", "wait_timeout_s")
+    reported("0, inputs", "inbox", "must be > 0")
     reported("-1}", "param 'speed' of operator 'replay'", "float > 0", "got -1")
     reported("0}}\n", "param 'dwell_s' of operator 'sweep'", "must be > 0")
 

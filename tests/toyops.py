@@ -153,3 +153,30 @@ class Unwritable(Operator):
                 Path(self.params.path).write_text("done\n")
             except OSError as exc:
                 raise OutputFailed(f"{self.params.path}: cannot write: {exc.strerror}") from None
+
+
+@dataclass(frozen=True)
+class SlowParams:
+    delay_s: float = 0.002
+    release: str = ""
+    """a file whose appearance ends a stall on the first message ("" for no stall)"""
+
+
+class Slow(Operator):
+    """A slow sink: takes `delay_s` per message and, with `release`, holds its first message until
+    that file exists (a consumer stalled: what its producers do then is the backpressure)."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    Params = SlowParams
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        self.n = 0
+
+    def on_input(self, port, msg, stamp_ns):
+        self.n += 1
+        if self.n == 1 and self.params.release:
+            while not Path(self.params.release).exists():
+                time.sleep(0.01)
+        time.sleep(self.params.delay_s)
+        return ()

@@ -28,7 +28,9 @@ MAX_PORT = 65535
 
 TOP_KEYS = ("version", "name", "description", "vars", "hosts", "operators")
 HOST_KEYS = ("listen", "connect", "host_timeout_s", "wait_timeout_s", "connect_timeout_s")
-OPERATOR_KEYS = ("uses", "host", "inputs", "params", "description")
+OPERATOR_KEYS = ("uses", "host", "inputs", "params", "description", "inbox")
+DEFAULT_INBOX = 1024
+"""Data messages per operator inbox (its memory bound: about that many messages of its inputs)."""
 DEFAULT_HOST_TIMEOUT_S = 15.0
 """A host unreachable this long is lost (the run goes on without it: partial results)."""
 DEFAULT_WAIT_TIMEOUT_S = 120.0
@@ -78,6 +80,8 @@ class OperatorSpec:
     name: str
     uses: str
     host: str | None = None
+    inbox: int = DEFAULT_INBOX
+    """data messages the operator's inbox holds before its producers wait (or a live source's oldest go)"""
     inputs: dict[str, Wire] = field(default_factory=dict)
     params: dict[str, Any] = field(default_factory=dict)
     set_params: dict[str, Any] = field(default_factory=dict)
@@ -242,6 +246,11 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
             col.add(path + ("host",), "host must be a host name")
             host_name = None
         spec = OperatorSpec(oname, uses or "", host_name)
+        if "inbox" in oval:
+            try:
+                spec.inbox = P.coerce(_substitute(oval["inbox"], path + ("inbox",), variables, col), P.PositiveInt)
+            except P.ParamTypeError as exc:
+                col.add(path + ("inbox",), f"inbox: {exc}")
         for port, src in col.mapping(oval.get("inputs"), path + ("inputs",), "inputs").items():
             src = _substitute(src, path + ("inputs", port), variables, col)
             if not (isinstance(src, str) and src.count("/") == 1 and all(src.split("/"))):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import hashlib
 import ipaddress
 import json
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,11 +84,24 @@ class Pipeline:
             if w.source == source and w.source_port == port
         ]
 
+    def hubs(self) -> dict[str, list[str]]:
+        """Hosts whose loss cuts others apart: hub -> the hosts that would no longer reach each other."""
+        links = host_links(self.spec)
+        hubs = {}
+        for hub in links:
+            cut = {h for me in links if me != hub for h in unreachable_without(links, me, hub)}
+            if cut:
+                hubs[hub] = sorted(cut)
+        return hubs
+
     def summary(self) -> str:
         wires = sum(len(n.spec.inputs) for n in self.nodes.values())
         hosts = self.hosts_in_use()
         where = f"on {len(hosts)} hosts ({', '.join(hosts)})" if hosts else "in one process"
-        return f"{self.spec.file}: ok: pipeline {self.name!r}, {len(self.nodes)} operators, {wires} wires, {where}"
+        text = f"{self.spec.file}: ok: pipeline {self.name!r}, {len(self.nodes)} operators, {wires} wires, {where}"
+        for hub, cut in sorted(self.hubs().items()):
+            text += f"; hub {hub}: {' and '.join(cut)} reach each other only through it"
+        return text
 
 
 def _params(doc: Located, spec: OperatorSpec, cls: type[Operator], problems: list[Diagnostic]) -> Any:
@@ -245,6 +258,17 @@ def _reaches(connect: str, listen: str) -> bool:
 def _listeners(spec: PipelineSpec, host: str, endpoint: str) -> list[str]:
     """The other hosts that listen where `host` connects with `endpoint`."""
     return [b.name for b in spec.hosts.values() if b.name != host and any(_reaches(endpoint, lep) for lep in b.listen)]
+
+
+def unreachable_without(links: Mapping[str, Collection[str]], me: str, gone: str) -> set[str]:
+    """The hosts `me` can no longer reach once `gone` is gone (`gone` itself not included)."""
+    seen, todo = {me, gone}, [me]
+    while todo:
+        for other in links.get(todo.pop(), ()):
+            if other not in seen:
+                seen.add(other)
+                todo.append(other)
+    return set(links) - seen
 
 
 def host_links(spec: PipelineSpec) -> dict[str, set[str]]:

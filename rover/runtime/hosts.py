@@ -19,6 +19,7 @@ import zenoh
 
 from rover.errors import TransportError
 from rover.operator import LostHost
+from rover.pipeline.validation import unreachable_without
 from rover.transport import keys
 
 log = logging.getLogger("rover")
@@ -29,23 +30,27 @@ WAIT_LOG_FIRST_S = 2.0
 WAIT_LOG_S = 5.0
 
 
-def unreachable_without(links: Mapping[str, Collection[str]], me: str, gone: str) -> set[str]:
-    """The hosts `me` can no longer reach once `gone` is gone (`gone` itself not included)."""
-    seen, todo = {me, gone}, [me]
-    while todo:
-        for other in links.get(todo.pop(), ()):
-            if other not in seen:
-                seen.add(other)
-                todo.append(other)
-    return set(links) - seen
+Links = Mapping[str, Collection[str]]
+"""host -> the hosts it talks to directly"""
 
 
-def describe_loss(links: Mapping[str, Collection[str]], me: str, lost: Mapping[str, LostHost]) -> str:
-    """One sentence for the lost hosts: a hub with the hosts that became unreachable with it, then the rest."""
+def attribute_to_hubs(links: Links, me: str, lost: Mapping[str, LostHost]) -> dict[str, LostHost]:
+    """The lost hosts, those behind a lost hub with that as their reason (they may well be running)."""
+    hubs = {name: unreachable_without(links, me, name) for name in lost}
+    out = dict(lost)
+    for hub, behind in sorted(hubs.items()):
+        for name in sorted(behind & set(lost)):
+            out[name] = LostHost(name, f"unreachable once hub {hub} was lost", lost[name].time)
+    return out
+
+
+def describe_loss(links: Links, me: str, lost: Mapping[str, LostHost]) -> str:
+    """One sentence for the lost hosts: a hub with the hosts that became unreachable with it (lost
+    too, or done before it went), then the rest."""
     explained: set[str] = set()
     parts = []
     for name in sorted(lost):
-        behind = sorted(unreachable_without(links, me, name) & set(lost))
+        behind = sorted(unreachable_without(links, me, name))
         if behind:
             explained |= {name, *behind}
             parts.append(
@@ -81,14 +86,18 @@ class HostWatch:
         self.lost: dict[str, LostHost] = {}
         self.byes: dict[str, str] = {}
         self.running = False
+        self.said_bye = False
         self.on_lost: Callable[[str], None] = lambda _host: None
         self._wanted: set[str] = set(hosts)
         self._warned: set[str] = set()
         self._cond = threading.Condition()
         self._tokens: list[zenoh.LivelinessToken] = []
+        # Both in Zenoh's own thread (not indirect), so a `bye` is handled before the withdrawal behind it.
+        on_token = zenoh.handlers.Callback(self._on_token, indirect=False)
+        on_bye = zenoh.handlers.Callback(self._on_bye, indirect=False)
         self._subscribers = [
-            session.liveliness().declare_subscriber(keys.host_tokens(pipeline), self._on_token, history=True),
-            session.declare_subscriber(keys.host_tokens(pipeline), self._on_bye),
+            session.liveliness().declare_subscriber(keys.host_tokens(pipeline), on_token, history=True),
+            session.declare_subscriber(keys.host_tokens(pipeline), on_bye),
         ]
 
     def _key(self, state: str) -> str:
@@ -98,8 +107,16 @@ class HostWatch:
         self._tokens.append(self.session.liveliness().declare_token(self._key(state)))
 
     def say_bye(self, reason: str) -> None:
-        """Tell the others why this host leaves (they then report it, not a crash)."""
-        self.session.put(self._key("bye"), reason.encode())
+        """Tell the others why this host leaves (they then report it, not a crash): sent ahead of
+        the data still queued, so it is there before the tokens are withdrawn."""
+        self.said_bye = True
+        self.session.put(
+            self._key("bye"),
+            reason.encode(),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.REAL_TIME,
+            express=True,
+        )
 
     def close(self) -> None:
         for token in self._tokens:

@@ -19,8 +19,6 @@ T = TypeVar("T")
 
 Policy = Literal["block", "drop_oldest"]
 """What a data `put` does on a full inbox: wait for a free slot, or replace the port's oldest data item."""
-DEFAULT_CAPACITY = 1024
-"""Data messages per operator inbox."""
 
 
 class _Entry(Generic[T]):
@@ -45,7 +43,7 @@ class Inbox(Generic[T]):
     at most `capacity` dropped items are still held in memory.
     """
 
-    def __init__(self, capacity: int = DEFAULT_CAPACITY) -> None:
+    def __init__(self, capacity: int) -> None:
         if capacity < 1:
             raise ValueError(f"inbox capacity must be at least 1, not {capacity}")
         self._capacity = capacity

@@ -27,7 +27,7 @@ from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, Rover
 from rover.messages import Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, OperatorCounts, RunOutcome, Source, Watermark
 from rover.pipeline.validation import Node, Pipeline, host_links
-from rover.runtime.hosts import HostWatch, describe_loss
+from rover.runtime.hosts import HostWatch, attribute_to_hubs, describe_loss
 from rover.runtime.inbox import Inbox, Policy
 from rover.runtime.scheduler import INF, EventTimeMerger
 from rover.runtime.status import HostStatus, OperatorStatus, status_key
@@ -243,7 +243,7 @@ class OperatorTask(Task):
         super().__init__(node, op, pipeline, session, stop, abort)
         self.wire_types = wire_types
         self.policies = policies
-        self.inbox: Inbox[tuple[str, bytes, bytes | None]] = Inbox()
+        self.inbox: Inbox[tuple[str, bytes, bytes | None]] = Inbox(node.spec.inbox)
         self.merger = EventTimeMerger(list(node.spec.inputs))
         self.ports = {port: spec for port in node.spec.inputs if (spec := node.cls.input_spec(port)) is not None}
         self.subscribers = [
@@ -531,13 +531,15 @@ class Runner:
         if self.interrupted:
             deadline = (self.stopped_at or time.monotonic()) + STOP_BUDGET_S
             return RunOutcome("interrupted", self._stop_reason(), counts, deadline)
-        lost = dict(self.watch.lost) if self.watch is not None else {}
-        cut = sorted(f"{t.name}.{port}" for t in self.tasks for port in t.cut_inputs)
+        links = host_links(self.pipeline.spec)
+        lost = attribute_to_hubs(links, self.host or "", self.watch.lost) if self.watch is not None else {}
+        nodes = self.pipeline.nodes
+        cut = {nodes[t.node.spec.inputs[port].source].spec.host or "" for t in self.tasks for port in t.cut_inputs}
         if lost or cut:
             if lost:
-                reason = describe_loss(host_links(self.pipeline.spec), self.host or "", lost)
+                reason = describe_loss(links, self.host or "", lost)
             else:
-                reason = f"input(s) {', '.join(cut)} ended early: a host upstream was stopped or lost"
+                reason = f"the streams from {', '.join(sorted(cut))} ended early: a host upstream was stopped or lost"
             return RunOutcome("partial", f"results are partial: {reason}", counts, lost=tuple(lost.values()))
         return RunOutcome("complete", "", counts)
 
@@ -678,17 +680,21 @@ class Runner:
                 return
             self.state = "running"
             self._start_and_wait()
-            if not self.abort.is_set():
+            if not self.stop.is_set():  # a stopped host is not done: the others report it lost
                 self.state = "finishing"
                 watch.declare("done")
                 watch.wait_done(wanted, self.stop)
             self.state = "done"
         finally:
-            if self.interrupted:
-                with contextlib.suppress(zenoh.ZError):
-                    watch.say_bye(self._stop_reason())
+            self._say_bye()
             status.undeclare()
             watch.close()
+
+    def _say_bye(self) -> None:
+        """After a signal, tell the other hosts why this one leaves (once, as early as possible)."""
+        if self.interrupted and self.watch is not None and not self.watch.said_bye:
+            with contextlib.suppress(zenoh.ZError):
+                self.watch.say_bye(self._stop_reason())
 
     def _cut_streams_of(self, host: str) -> None:
         """End every input stream that comes from an operator on `host`."""
@@ -710,6 +716,7 @@ class Runner:
             while not all(t.done.is_set() for t in self.tasks):
                 if self.stop.is_set() and deadline is None:
                     deadline = (self.stopped_at or time.monotonic()) + DRAIN_S
+                    self._say_bye()
                 if deadline is not None and time.monotonic() > deadline:
                     self.abort.set()
                     break

@@ -1,0 +1,134 @@
+"""Host presence: who is ready, done or lost, and how a loss is explained, on real Zenoh sessions."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+import zenoh
+from conftest import free_port
+
+from rover.errors import TransportError
+from rover.operator import LostHost
+from rover.pipeline.validation import unreachable_without
+from rover.runtime.hosts import HostWatch, attribute_to_hubs, describe_loss
+from rover.transport import keys
+from rover.transport.session import SessionSpec, open_session
+
+HUB = {"nuc": {"base", "laptop"}, "base": {"nuc"}, "laptop": {"nuc"}}
+MESH = {"nuc": {"base", "laptop"}, "base": {"nuc", "laptop"}, "laptop": {"nuc", "base"}}
+WAIT_S = 10.0
+
+
+def lost(*names: str, reason: str = "gone") -> dict[str, LostHost]:
+    return {n: LostHost(n, reason, "2026-12-01T00:00:00+00:00") for n in names}
+
+
+def test_the_hub_is_named_with_the_hosts_behind_it():
+    assert unreachable_without(HUB, "laptop", "nuc") == {"base"}
+    assert unreachable_without(HUB, "nuc", "base") == set()
+    text = describe_loss(HUB, "laptop", lost("nuc", "base", reason="stopped by SIGINT"))
+    assert text == "hub nuc was lost (stopped by SIGINT); host base became unreachable with it"
+    assert describe_loss(HUB, "nuc", lost("base")) == "host base was lost (gone)"
+    blamed = attribute_to_hubs(HUB, "base", lost("nuc", "laptop"))
+    assert blamed["laptop"].reason == "unreachable once hub nuc was lost" and blamed["nuc"].reason == "gone"
+
+
+def test_with_a_direct_link_the_nuc_is_no_hub():
+    assert unreachable_without(MESH, "laptop", "nuc") == set()
+    assert describe_loss(MESH, "laptop", lost("nuc")) == "host nuc was lost (gone)"
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """Two routers on loopback: the watching host's and the other processes'."""
+    port = free_port()
+    with (
+        open_session(SessionSpec([f"tcp/127.0.0.1:{port}"], [], 15.0, "a")) as mine,
+        open_session(SessionSpec([], [f"tcp/127.0.0.1:{port}"], 15.0, "b")) as theirs,
+    ):
+        yield mine, theirs
+
+
+def token(session: zenoh.Session, host: str, state: str, digest: str = "d1", zid: str = "") -> zenoh.LivelinessToken:
+    key = keys.host_token("p", keys.HostKey(host, digest, zid or str(session.zid()), state))
+    return session.liveliness().declare_token(key)
+
+
+def watch_of(session: zenoh.Session) -> HostWatch:
+    return HostWatch(session, "p", "laptop", ["nuc", "base", "laptop"], "d1", 15.0)
+
+
+def test_a_host_withdrawn_before_done_is_lost_with_its_reason(sessions):
+    mine, theirs = sessions
+    watch = watch_of(mine)
+    lost_hosts: list[str] = []
+    noticed = threading.Event()
+
+    def on_lost(host: str) -> None:
+        lost_hosts.append(host)
+        noticed.set()
+
+    watch.on_lost = on_lost
+    nuc = HostWatch(theirs, "p", "nuc", ["nuc", "base", "laptop"], "d1", 15.0)
+    nuc.declare("ready")
+    base = token(theirs, "base", "ready")
+    assert watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), WAIT_S, "")
+    nuc.say_bye("stopped by SIGINT")
+    nuc.close()
+    assert noticed.wait(WAIT_S)
+    assert lost_hosts == ["nuc"] and watch.lost["nuc"].reason == "stopped by SIGINT"
+    done = token(theirs, "base", "done")
+    watch.wait_done(["nuc", "base", "laptop"], threading.Event())
+    done.undeclare()
+    base.undeclare()
+    watch.close()
+    assert set(watch.lost) == {"nuc"}, "a host withdrawn after it was done is not lost"
+
+
+def test_tokens_not_from_a_host_of_this_run_are_ignored(sessions, caplog):
+    """Another pipeline version (digest), an undeclared host, a malformed key, a second process
+    claiming a host: none of them makes the run start."""
+    mine, theirs = sessions
+    watch = watch_of(mine)
+    forged = [
+        token(theirs, "nuc", "ready", digest="other"),
+        token(theirs, "intruder", "ready"),
+        theirs.liveliness().declare_token("rover/p/_hosts/nuc/ready"),
+    ]
+    real_base = token(theirs, "base", "ready")
+    with caplog.at_level(logging.WARNING, logger="rover"), pytest.raises(TransportError) as info:
+        watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), 1.0, "")
+    assert "waiting for host(s) nuc" in str(info.value) and "base" not in str(info.value)
+    assert sum("ignored the presence token" in r.message for r in caplog.records) == 3
+    second = token(theirs, "base", "ready", zid="f00d")
+    nuc = token(theirs, "nuc", "ready")
+    assert watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), WAIT_S, "")
+    assert watch.ready["base"] == str(theirs.zid())
+    for t in (*forged, real_base, second, nuc):
+        t.undeclare()
+    watch.close()
+
+
+def test_a_stop_ends_the_wait_and_a_host_that_left_is_waited_for_again(sessions, caplog):
+    mine, theirs = sessions
+    watch = watch_of(mine)
+    nuc = token(theirs, "nuc", "ready")
+    caplog.set_level(logging.WARNING, logger="rover")
+    with pytest.raises(TransportError, match=r"after 0.5 s \(wait_timeout_s\) waiting for host\(s\) base \(hint\)"):
+        watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), 0.5, " (hint)")
+    nuc.undeclare()
+    deadline = time.monotonic() + WAIT_S
+    while not any("host nuc left before the run began" in r.message for r in caplog.records):
+        assert time.monotonic() < deadline, "the withdrawal of nuc's token was not noticed"
+        time.sleep(0.01)
+    with pytest.raises(TransportError, match="waiting for host.s. nuc"):
+        watch.wait_ready(["nuc", "laptop"], threading.Event(), 0.5, "")
+    assert not watch.lost
+    stop = threading.Event()
+    stop.set()
+    assert not watch.wait_ready(["nuc", "laptop"], stop, WAIT_S, "")
+    watch.close()
