@@ -168,6 +168,14 @@ class Task:
             self.release()
             self.done.set()
 
+    def undeclare(self) -> None:
+        """Withdraw this task's publishers (and subscribers) before the session closes: a router
+        whose neighbour closes with entities still declared may panic unregistering them
+        (Zenoh 1.10, `unregister_router_entities`)."""
+        for out in self.outputs.values():
+            with contextlib.suppress(zenoh.ZError):
+                out.publisher.undeclare()
+
     def release(self) -> None:
         """Let go of what producers may be waiting on, once this task handles nothing more."""
 
@@ -274,6 +282,12 @@ class OperatorTask(Task):
 
     def release(self) -> None:
         self.inbox.close()
+
+    def undeclare(self) -> None:
+        for subscriber in self.subscribers:
+            with contextlib.suppress(zenoh.ZError):
+                subscriber.undeclare()
+        super().undeclare()
 
     def count_inbox_drops(self) -> None:
         """Add what the inbox dropped (a live source's oldest, or anything after this task ended) to the stats."""
@@ -585,6 +599,9 @@ class Runner:
             for task in self.tasks:
                 if task.thread.ident is not None:
                     task.thread.join(timeout=max(0.0, joined_by - time.monotonic()))
+            for task in self.tasks:
+                if not task.thread.is_alive():
+                    task.undeclare()
             for task in self.tasks:
                 queue_line = ""
                 if isinstance(task, OperatorTask):

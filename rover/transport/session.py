@@ -40,6 +40,10 @@ def config(spec: SessionSpec) -> zenoh.Config:
     conf.insert_json5("connect/exit_on_failure", "false")
     conf.insert_json5("connect/retry", json.dumps(RETRY))
     conf.insert_json5("transport/link/tx/lease", str(max(1, int(spec.host_timeout_s * 1000))))
+    # A publisher blocked on a link (the other side unreachable, TCP backing off) must not close
+    # it before the lease does: Zenoh's default closes it after 5 s, a 4 s outage takes ~6.5 s.
+    block_us = max(1, int(spec.host_timeout_s * 1e6))
+    conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", str(block_us))
     return conf
 
 
