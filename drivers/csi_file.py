@@ -56,6 +56,11 @@ class CsiFile(Source):
     outputs = {"csi": Out("rover_msgs/msg/CsiFrame")}
     Params = CsiFileParams
 
+    @classmethod
+    def is_live(cls, params: CsiFileParams) -> bool:
+        """A followed log grows as the NIC writes it: live; a whole log is a file."""
+        return params.follow
+
     def __init__(self, params: CsiFileParams | None = None):
         super().__init__(params)
         if not self.params.path:

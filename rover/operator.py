@@ -206,6 +206,11 @@ class Source(Operator):
 
     live: ClassVar[bool] = False
 
+    @classmethod
+    def is_live(cls, params: Any) -> bool:
+        """Whether a source with these params reads a device (or a growing file) rather than a file."""
+        return cls.live
+
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         raise NotImplementedError
 

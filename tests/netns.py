@@ -36,6 +36,8 @@ import pytest
 
 TESTS = Path(__file__).resolve().parent
 SUBNET = "10.77.0"
+ROOT = Path(__file__).resolve().parent.parent
+"""the repository"""
 ADDRESSES = {"nuc": f"{SUBNET}.1", "base": f"{SUBNET}.2", "laptop": f"{SUBNET}.3"}
 """The default hosts and their addresses (a /24)."""
 IFACE = "eth0"
@@ -337,3 +339,22 @@ def wait_until(
                 raise AssertionError(f"{command} ended ({proc.returncode}) before {what}:\n{err}")
         assert time.monotonic() < deadline, f"not {what} after {timeout_s:g} s"
         time.sleep(POLL_S)
+
+
+def pipeline_file(tmp_path: Path, **host_keys: object) -> Path:
+    """rover/pipeline.yaml with its hosts on the lab's addresses (the NUC listens on 10.77.0.1,
+    the others connect to it) and `host_keys` added to every host."""
+    text = (ROOT / "rover" / "pipeline.yaml").read_text()
+    extra = "".join(f", {key}: {value}" for key, value in host_keys.items())
+    nuc = f"tcp/{ADDRESSES['nuc']}:${{port}}"
+    hosts = (
+        "hosts:\n"
+        f'  nuc:    {{listen: ["{nuc}"]{extra}}}\n'
+        f'  base:   {{connect: ["{nuc}"]{extra}}}\n'
+        f'  laptop: {{connect: ["{nuc}"]{extra}}}\n'
+    )
+    lab_text, count = re.subn(r"^hosts:\n(?:[ ]+.*\n)+", hosts, text, count=1, flags=re.M)
+    assert count == 1, "rover/pipeline.yaml has no `hosts:` block of indented lines to replace"
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(lab_text)
+    return path

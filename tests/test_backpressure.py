@@ -47,9 +47,12 @@ operators:
             for _ in range(20):
                 ops = {o.name: o for r in client.query() for o in HostStatus.from_json(r).operators}
                 sent.append(ops["replay"].sent.get("imu", 0))
+            shown = run_rover("status", str(pipeline), "--once", "--interval", "0.2")
     finally:
         release.touch()
         _out, err = proc.communicate(timeout=WAIT_S)
+    assert shown.returncode == 0, shown.stderr
+    assert all(word in shown.stdout for word in ("robot", "running", "replay", "slow", "record")), shown.stdout
     assert max(sent) <= 1 + STALL_INBOX, f"the replay ran ahead of its stalled consumer: sent {sent}"
     assert proc.returncode == 0, err
     assert "slow: in imu=4000" in err
@@ -112,3 +115,21 @@ operators:
         outputs.append((tmp_path / str(inbox) / "results.mcap").read_bytes())
     assert outputs[0] == outputs[1]
     assert len(read_bag(tmp_path / "2" / "results.mcap")) == 10
+
+
+def test_a_live_source_never_waits_its_consumers_drop_the_oldest_and_count_it(tmp_path):
+    """A live source (a device cannot be paused) into a consumer 10x too slow: the source goes at its
+    own pace, the consumer's inbox keeps the newest messages, and what it dropped is reported."""
+    pipeline = tmp_path / "live.yaml"
+    pipeline.write_text("""\
+name: live
+operators:
+  tick: {uses: toyops.Ticker, params: {rate_hz: 1000, count: 1000}}
+  slow: {uses: toyops.Slow, inbox: 4, inputs: {imu: tick/imu}, params: {delay_s: 0.01}}
+""")
+    done = run_rover("-v", "run", str(pipeline), timeout=120)
+    assert done.returncode == 0, done.stderr
+    line = next(x for x in done.stderr.splitlines() if "slow: in" in x)
+    handled = int(line.split("imu=")[1].split(";")[0])
+    dropped = int(line.split("imu:inbox full (a live source's oldest) or after the operator ended=")[1].split(";")[0])
+    assert handled < 500 and handled + dropped == 1000, line

@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, popen_rover, read_bag, run_rover
-from netns import ADDRESSES, Lab, require_root, wait_until
+from conftest import popen_rover, read_bag, run_rover
+from netns import ADDRESSES, Lab, pipeline_file, require_root, wait_until
 
 HOSTS = ("laptop", "base", "nuc")
 """Start order: the NUC, where the others connect, last (they retry until it listens)."""
@@ -88,25 +88,6 @@ def reference(dataset, tmp_path_factory):
 def lab(root):
     with Lab() as lab:
         yield lab
-
-
-def pipeline_file(tmp_path: Path, **host_keys: object) -> Path:
-    """rover/pipeline.yaml with its hosts on the lab's addresses (the NUC listens on 10.77.0.1,
-    the others connect to it) and `host_keys` added to every host."""
-    text = (ROOT / "rover" / "pipeline.yaml").read_text()
-    extra = "".join(f", {key}: {value}" for key, value in host_keys.items())
-    nuc = f"tcp/{ADDRESSES['nuc']}:${{port}}"
-    hosts = (
-        "hosts:\n"
-        f'  nuc:    {{listen: ["{nuc}"]{extra}}}\n'
-        f'  base:   {{connect: ["{nuc}"]{extra}}}\n'
-        f'  laptop: {{connect: ["{nuc}"]{extra}}}\n'
-    )
-    lab_text, count = re.subn(r"^hosts:\n(?:[ ]+.*\n)+", hosts, text, count=1, flags=re.M)
-    assert count == 1, "rover/pipeline.yaml has no `hosts:` block of indented lines to replace"
-    path = tmp_path / "pipeline.yaml"
-    path.write_text(lab_text)
-    return path
 
 
 def start(

@@ -473,3 +473,43 @@ def test_the_default_pipeline_on_three_hosts_gives_the_same_bytes(tmp_path):
     )
     for name in ("trajectory.tum", "trajectory_live.tum", "tags.csv", "metrics.json"):
         assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "three" / name).read_bytes(), name
+
+
+MESH = """\
+name: mesh
+vars: {dataset: "", output: out, port: 7447, port2: 7448}
+hosts:
+  nuc:    {listen: ["tcp/127.0.0.1:${port}"]}
+  base:   {listen: ["tcp/127.0.0.1:${port2}"], connect: ["tcp/127.0.0.1:${port}"]}
+  laptop: {connect: ["tcp/127.0.0.1:${port}", "tcp/127.0.0.1:${port2}"]}
+operators:
+  tick:    {uses: toyops.Ticker, host: nuc, params: {rate_hz: 50}}
+  replay:  {uses: dataset_replay, host: base, params: {path: "${dataset}", speed: 4}}
+  heading: {uses: toyops.Heading, host: laptop, inputs: {imu: replay/imu, odom: replay/odom}}
+  record:  {uses: recorder, host: laptop, inputs: {pose: heading/pose, tick: tick/imu}, params: {out: "${output}"}}
+"""
+
+
+HOST_NAMES = ("nuc", "base", "laptop")
+
+
+def test_with_a_direct_link_losing_the_nuc_does_not_cut_base_from_the_laptop(tmp_path, dataset):
+    """Base listens too and the laptop connects to both: kill -9 of the NUC mid-run leaves base's
+    stream to the laptop whole (every pose), and both report the NUC lost, not as a hub (exit 3)."""
+    pipeline = tmp_path / "mesh.yaml"
+    pipeline.write_text(MESH)
+    port, port2 = free_port(), free_port()
+    sets = ["--set", f"port={port}", "--set", f"port2={port2}", "--dataset", str(dataset)]
+    out = tmp_path / "out"
+    procs = {h: popen_rover("run", str(pipeline), "--host", h, "--output", str(out), *sets) for h in HOST_NAMES}
+    with client(port2) as watcher:
+        _sub, started = data_event(watcher, "rover/mesh/heading/pose", 20)
+        assert wait_for(started, procs["laptop"]), procs["laptop"].communicate()
+    procs["nuc"].kill()
+    results = {h: (p.communicate(timeout=WAIT_S)[1], p.returncode) for h, p in procs.items()}
+    for host in ("base", "laptop"):
+        err, rc = results[host]
+        assert rc == 3, err
+        assert "host nuc was lost" in err and "hub" not in err, err
+    poses = [m for m in read_bag(out / "results.mcap") if m[0] == "/pose"]
+    assert len(poses) == 400, f"{len(poses)} of 400 poses reached the laptop"

@@ -633,7 +633,7 @@ class Runner:
         def live(name: str) -> bool:
             n = nodes[name]
             if issubclass(n.cls, Source):
-                return n.cls.live
+                return n.cls.is_live(n.params)
             return any(live(w.source) for w in n.spec.inputs.values())
 
         return {port: "drop_oldest" if live(w.source) else "block" for port, w in node.spec.inputs.items()}
