@@ -133,3 +133,43 @@ operators:
     handled = int(line.split("imu=")[1].split(";")[0])
     dropped = int(line.split("imu:inbox full (a live source's oldest) or after the operator ended=")[1].split(";")[0])
     assert handled < 500 and handled + dropped == 1000, line
+
+
+def test_a_consumer_on_another_host_stalled_past_host_timeout_loses_no_host(tmp_path):
+    """A consumer on the laptop stalls for twice host_timeout_s while the robot replays: the replay
+    waits for credit in its own thread (Zenoh's receive thread never waits, so the link's
+    keep-alives flow and nobody is lost), the laptop's inbox never holds more than its bound, and
+    every message arrives once the consumer resumes (exit 0 on both)."""
+    dataset = write_imu_dataset(tmp_path / "imu.mcap", 4000, odom_every=0)
+    release = tmp_path / "release"
+    port = free_port()
+    host_timeout_s = 2.0
+    pipeline = tmp_path / "remote.yaml"
+    pipeline.write_text(f"""\
+name: remote
+hosts:
+  robot:  {{listen: ["tcp/127.0.0.1:{port}"], host_timeout_s: {host_timeout_s}}}
+  laptop: {{connect: ["tcp/127.0.0.1:{port}"], host_timeout_s: {host_timeout_s}}}
+operators:
+  replay: {{uses: dataset_replay, host: robot, params: {{path: "{dataset}"}}}}
+  slow:   {{uses: toyops.Slow, host: laptop, inbox: {STALL_INBOX}, inputs: {{imu: replay/imu}},
+            params: {{delay_s: 0, release: "{release}"}}}}
+""")
+    procs = {h: popen_rover("-v", "run", str(pipeline), "--host", h) for h in ("laptop", "robot")}
+    try:
+        with StatusClient("remote", [f"tcp/127.0.0.1:{port}"], WAIT_S) as client:
+            deadline = time.monotonic() + WAIT_S
+            while True:
+                ops = {o.name: o for r in client.query() for o in HostStatus.from_json(r).operators}
+                if "replay" in ops and ops["replay"].sent.get("imu", 0) >= STALL_INBOX:
+                    break  # the replay has used its credit and waits
+                assert all(p.poll() is None for p in procs.values()) and time.monotonic() < deadline, "no stall"
+        time.sleep(2 * host_timeout_s)  # the stall itself, past the host timeout
+    finally:
+        release.touch()
+        results = {h: (p.communicate(timeout=WAIT_S)[1], p.returncode) for h, p in procs.items()}
+    for host, (err, rc) in results.items():
+        assert rc == 0, f"{host}: {err}"
+    assert "slow: in imu=4000" in results["laptop"][0]
+    high = int(results["laptop"][0].split("queue high-water ")[1].split(" ")[0])
+    assert high <= STALL_INBOX and "over the bound" not in results["laptop"][0], results["laptop"][0]

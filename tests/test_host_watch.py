@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 import zenoh
@@ -23,6 +23,17 @@ MESH = {"nuc": {"base", "laptop"}, "base": {"nuc", "laptop"}, "laptop": {"nuc", 
 WAIT_S = 10.0
 
 
+TIMEOUTS = {"nuc": 15.0, "base": 15.0, "laptop": 15.0}
+
+
+def until(condition: Callable[[], bool], what: str) -> None:
+    """Poll a condition that Zenoh's thread makes true, for at most WAIT_S."""
+    deadline = time.monotonic() + WAIT_S
+    while not condition():
+        assert time.monotonic() < deadline, f"not {what} after {WAIT_S:g} s"
+        time.sleep(0.01)
+
+
 def lost(*names: str, reason: str = "gone") -> dict[str, LostHost]:
     return {n: LostHost(n, reason, "2026-12-01T00:00:00+00:00") for n in names}
 
@@ -30,16 +41,27 @@ def lost(*names: str, reason: str = "gone") -> dict[str, LostHost]:
 def test_the_hub_is_named_with_the_hosts_behind_it():
     assert unreachable_without(HUB, "laptop", "nuc") == {"base"}
     assert unreachable_without(HUB, "nuc", "base") == set()
-    text = describe_loss(HUB, "laptop", lost("nuc", "base", reason="stopped by SIGINT"))
+    together = {"nuc": 100.0, "base": 100.01}
+    text = describe_loss(HUB, "laptop", lost("nuc", "base", reason="stopped by SIGINT"), together)
     assert text == "hub nuc was lost (stopped by SIGINT); host base became unreachable with it"
-    assert describe_loss(HUB, "nuc", lost("base")) == "host base was lost (gone)"
-    blamed = attribute_to_hubs(HUB, "base", lost("nuc", "laptop"))
+    assert describe_loss(HUB, "nuc", lost("base"), {"base": 5.0}) == "host base was lost (gone)"
+    blamed = attribute_to_hubs(HUB, "base", lost("nuc", "laptop"), {"nuc": 7.0, "laptop": 7.0})
     assert blamed["laptop"].reason == "unreachable once hub nuc was lost" and blamed["nuc"].reason == "gone"
+
+
+def test_a_host_lost_well_before_the_hub_keeps_its_own_reason():
+    """base killed at 10 s, the NUC stopped at 20 s: base was not lost with the hub (nobody else was)."""
+    losses = {"base": LostHost("base", "gone without a word", "t1"), "nuc": LostHost("nuc", "stopped by SIGINT", "t2")}
+    at = {"base": 10.0, "nuc": 20.0}
+    assert describe_loss(HUB, "laptop", losses, at) == (
+        "host base was lost (gone without a word); host nuc was lost (stopped by SIGINT)"
+    )
+    assert attribute_to_hubs(HUB, "laptop", losses, at)["base"].reason == "gone without a word"
 
 
 def test_with_a_direct_link_the_nuc_is_no_hub():
     assert unreachable_without(MESH, "laptop", "nuc") == set()
-    assert describe_loss(MESH, "laptop", lost("nuc")) == "host nuc was lost (gone)"
+    assert describe_loss(MESH, "laptop", lost("nuc"), {"nuc": 1.0}) == "host nuc was lost (gone)"
 
 
 @pytest.fixture
@@ -59,7 +81,7 @@ def token(session: zenoh.Session, host: str, state: str, digest: str = "d1", zid
 
 
 def watch_of(session: zenoh.Session) -> HostWatch:
-    return HostWatch(session, "p", "laptop", ["nuc", "base", "laptop"], "d1", 15.0)
+    return HostWatch(session, "p", "laptop", TIMEOUTS, "d1")
 
 
 def test_a_host_withdrawn_before_done_is_lost_with_its_reason(sessions):
@@ -73,20 +95,45 @@ def test_a_host_withdrawn_before_done_is_lost_with_its_reason(sessions):
         noticed.set()
 
     watch.on_lost = on_lost
-    nuc = HostWatch(theirs, "p", "nuc", ["nuc", "base", "laptop"], "d1", 15.0)
+    nuc = HostWatch(theirs, "p", "nuc", TIMEOUTS, "d1")
     nuc.declare("ready")
     base = token(theirs, "base", "ready")
     assert watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), WAIT_S, "")
     nuc.say_bye("stopped by SIGINT")
+    until(lambda: "nuc" in watch.byes, "the bye arrived")
     nuc.close()
     assert noticed.wait(WAIT_S)
     assert lost_hosts == ["nuc"] and watch.lost["nuc"].reason == "stopped by SIGINT"
     done = token(theirs, "base", "done")
-    watch.wait_done(["nuc", "base", "laptop"], threading.Event())
+    give_up = threading.Timer(WAIT_S, (stop := threading.Event()).set)
+    give_up.start()
+    watch.wait_done(["nuc", "base", "laptop"], stop)
+    give_up.cancel()
+    assert not stop.is_set() and watch.done == {"base"}
     done.undeclare()
     base.undeclare()
+    watch.wait_gone(["base"], WAIT_S)
     watch.close()
-    assert set(watch.lost) == {"nuc"}, "a host withdrawn after it was done is not lost"
+    assert watch.gone == {"base"} and set(watch.lost) == {"nuc"}, "a host withdrawn after it was done is not lost"
+
+
+def test_a_restarted_host_takes_over_before_the_run_begins(sessions, caplog):
+    """The laptop restarted while its old process still holds its token: the new one is ignored
+    while the old one is there, and takes over as soon as the old one leaves."""
+    mine, theirs = sessions
+    watch = HostWatch(mine, "p", "nuc", TIMEOUTS, "d1")
+    old = token(theirs, "laptop", "ready", zid="01d")
+    until(lambda: watch.ready.get("laptop") == "01d", "the old laptop is seen")
+    new = token(theirs, "laptop", "ready", zid="2e3")
+    until(lambda: watch.claims.get("laptop") == ["01d", "2e3"], "the new laptop is seen")
+    assert watch.ready["laptop"] == "01d"
+    old.undeclare()
+    until(lambda: watch.ready.get("laptop") == "2e3", "the new laptop takes over")
+    base = token(theirs, "base", "ready")
+    assert watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), WAIT_S, "")
+    for t in (new, base):
+        t.undeclare()
+    watch.close()
 
 
 def test_tokens_not_from_a_host_of_this_run_are_ignored(sessions, caplog):
@@ -121,10 +168,7 @@ def test_a_stop_ends_the_wait_and_a_host_that_left_is_waited_for_again(sessions,
     with pytest.raises(TransportError, match=r"after 0.5 s \(wait_timeout_s\) waiting for host\(s\) base \(hint\)"):
         watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), 0.5, " (hint)")
     nuc.undeclare()
-    deadline = time.monotonic() + WAIT_S
-    while not any("host nuc left before the run began" in r.message for r in caplog.records):
-        assert time.monotonic() < deadline, "the withdrawal of nuc's token was not noticed"
-        time.sleep(0.01)
+    until(lambda: any("host nuc left before the run began" in r.message for r in caplog.records), "nuc left")
     with pytest.raises(TransportError, match="waiting for host.s. nuc"):
         watch.wait_ready(["nuc", "laptop"], threading.Event(), 0.5, "")
     assert not watch.lost

@@ -224,3 +224,15 @@ def test_mixed_policies_account_for_every_item_and_stay_within_capacity():
         assert len(data) + dropped[port] == per_port
     assert dropped["block0"] == dropped["block1"] == 0
     assert inbox.high_water <= capacity
+
+
+def test_a_put_with_max_wait_appends_over_the_bound_after_waiting_and_counts_it():
+    """Zenoh's receive thread must not freeze on a stalled consumer: it waits at most max_wait_s."""
+    inbox: Inbox[int] = Inbox(2)
+    inbox.put("a", 1)
+    inbox.put("a", 2)
+    started = time.monotonic()
+    inbox.put("a", 3, max_wait_s=0.05)
+    assert time.monotonic() - started >= 0.05
+    assert inbox.depth == 3 and inbox.overflowed == {"a": 1} and not inbox.dropped
+    assert [inbox.get(1.0)[1] for _ in range(3)] == [1, 2, 3]

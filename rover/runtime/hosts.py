@@ -10,6 +10,7 @@ everybody behind it goes with it; `describe_loss` says so from the link graph of
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Collection, Mapping
@@ -32,63 +33,82 @@ WAIT_LOG_S = 5.0
 
 Links = Mapping[str, Collection[str]]
 """host -> the hosts it talks to directly"""
+SAME_LOSS_S = 2.0
+"""Hosts lost this soon before a hub (or after it) went with it; earlier ones were lost on their own."""
 
 
-def attribute_to_hubs(links: Links, me: str, lost: Mapping[str, LostHost]) -> dict[str, LostHost]:
-    """The lost hosts, those behind a lost hub with that as their reason (they may well be running)."""
-    hubs = {name: unreachable_without(links, me, name) for name in lost}
+def behind_hub(links: Links, me: str, hub: str, lost_at: Mapping[str, float]) -> list[str]:
+    """The hosts `me` no longer reaches since `hub` went, leaving out those lost well before it."""
+    cut = unreachable_without(links, me, hub)
+    return sorted(h for h in cut if lost_at.get(h, math.inf) >= lost_at[hub] - SAME_LOSS_S)
+
+
+def attribute_to_hubs(
+    links: Links, me: str, lost: Mapping[str, LostHost], lost_at: Mapping[str, float]
+) -> dict[str, LostHost]:
+    """The lost hosts; those that went with a hub get that as their reason (they may well be running)."""
     out = dict(lost)
-    for hub, behind in sorted(hubs.items()):
-        for name in sorted(behind & set(lost)):
-            out[name] = LostHost(name, f"unreachable once hub {hub} was lost", lost[name].time)
+    for hub in sorted(lost, key=lambda h: (lost_at[h], h)):
+        for name in behind_hub(links, me, hub, lost_at):
+            if name in lost and out[name] is lost[name]:
+                out[name] = LostHost(name, f"unreachable once hub {hub} was lost", lost[name].time)
     return out
 
 
-def describe_loss(links: Links, me: str, lost: Mapping[str, LostHost]) -> str:
+def describe_loss(links: Links, me: str, lost: Mapping[str, LostHost], lost_at: Mapping[str, float]) -> str:
     """One sentence for the lost hosts: a hub with the hosts that became unreachable with it (lost
-    too, or done before it went), then the rest."""
+    with it, or done before it went), then the hosts lost on their own."""
     explained: set[str] = set()
     parts = []
-    for name in sorted(lost):
-        behind = sorted(unreachable_without(links, me, name))
+    for name in sorted(lost, key=lambda h: (lost_at[h], h)):
+        if name in explained:
+            continue
+        behind = behind_hub(links, me, name, lost_at)
         if behind:
             explained |= {name, *behind}
             parts.append(
                 f"hub {name} was lost ({lost[name].reason}); host{'s' if len(behind) > 1 else ''} "
                 f"{', '.join(behind)} became unreachable with it"
             )
-    parts += [f"host {name} was lost ({lost[name].reason})" for name in sorted(set(lost) - explained)]
+    alone = sorted(set(lost) - explained, key=lambda h: (lost_at[h], h))
+    parts += [f"host {name} was lost ({lost[name].reason})" for name in alone]
     return "; ".join(parts)
 
 
 class HostWatch:
-    """Presence of every host of one run, from this host's session."""
+    """Presence of every host of one run, from this host's session. `host_timeouts`: each host's
+    `host_timeout_s`, the lease it announces (how long the others wait for it), for messages."""
 
     def __init__(
         self,
         session: zenoh.Session,
         pipeline: str,
         me: str,
-        hosts: Collection[str],
+        host_timeouts: Mapping[str, float],
         digest: str,
-        host_timeout_s: float,
     ):
         self.session = session
         self.pipeline = pipeline
         self.me = me
-        self.hosts = set(hosts)
+        self.hosts = set(host_timeouts)
+        self.host_timeouts = dict(host_timeouts)
         self.digest = digest
         self.zid = str(session.zid())
-        self.host_timeout_s = host_timeout_s
         self.ready: dict[str, str] = {}
         """host -> the zid of the process that is that host"""
+        self.claims: dict[str, list[str]] = {}
+        """host -> every process (zid) with a `ready` token for it, in order: the first is the host"""
         self.done: set[str] = set()
+        self.gone: set[str] = set()
+        """hosts that were done and have left"""
         self.lost: dict[str, LostHost] = {}
+        self.lost_at: dict[str, float] = {}
+        """`time.monotonic()` when each lost host was noticed"""
         self.byes: dict[str, str] = {}
         self.running = False
         self.said_bye = False
         self.on_lost: Callable[[str], None] = lambda _host: None
-        self._wanted: set[str] = set(hosts)
+        self._wanted: set[str] = set(self.hosts)
         self._warned: set[str] = set()
         self._cond = threading.Condition()
         self._tokens: list[zenoh.LivelinessToken] = []
@@ -99,6 +119,10 @@ class HostWatch:
             session.liveliness().declare_subscriber(keys.host_tokens(pipeline), on_token, history=True),
             session.declare_subscriber(keys.host_tokens(pipeline), on_bye),
         ]
+
+    def lost_hosts(self) -> list[str]:
+        with self._cond:
+            return sorted(self.lost)
 
     def _key(self, state: str) -> str:
         return keys.host_token(self.pipeline, keys.HostKey(self.me, self.digest, self.zid, state))
@@ -157,30 +181,69 @@ class HostWatch:
             if parsed.state == "ready" and sample.kind == zenoh.SampleKind.PUT:
                 log.warning("host %s: another process (zid %s) also runs as this host: ignored", self.me, parsed.zid)
             return
-        lost_now = None
         with self._cond:
-            host, owner = parsed.host, self.ready.get(parsed.host)
             if sample.kind == zenoh.SampleKind.PUT:
-                if parsed.state == "ready" and owner is None and host not in self.lost:
-                    self.ready[host] = parsed.zid
-                elif parsed.state == "ready" and owner != parsed.zid:
-                    log.warning("host %s: a second process claims host %s (zid %s): ignored", self.me, host, parsed.zid)
-                elif parsed.state == "done" and owner == parsed.zid:
-                    self.done.add(host)
-            elif parsed.state == "ready" and owner == parsed.zid and host not in self.done:
-                if self.running:
-                    reason = self.byes.get(host) or (
-                        f"gone without a word: it crashed, or was unreachable for more than {self.host_timeout_s:g} s"
-                    )
-                    self.lost[host] = LostHost(host, reason, datetime.now(UTC).isoformat(timespec="seconds"))
-                    lost_now = host
-                else:
-                    del self.ready[host]
-                    log.warning("host %s: host %s left before the run began; waiting for it again", self.me, host)
+                self._put(parsed)
+                lost_now = None
+            else:
+                lost_now = self._withdrawn(parsed)
             self._cond.notify_all()
         if lost_now is not None:
             log.warning("host %s: host %s was lost (%s)", self.me, lost_now, self.lost[lost_now].reason)
             self.on_lost(lost_now)
+
+    def _put(self, parsed: keys.HostKey) -> None:
+        host, zid = parsed.host, parsed.zid
+        if parsed.state == "done":
+            if self.ready.get(host) == zid:
+                self.done.add(host)
+            return
+        if parsed.state != "ready":
+            return
+        claims = self.claims.setdefault(host, [])
+        if zid not in claims:
+            claims.append(zid)
+        if host in self.lost:
+            log.warning("host %s: host %s is back, but its streams were cut: it stays out of this run", self.me, host)
+        elif host not in self.ready:
+            self.ready[host] = zid
+        elif self.ready[host] != zid:
+            log.warning(
+                "host %s: a second process (zid %s) claims host %s: ignored while the first one is there",
+                self.me,
+                zid,
+                host,
+            )
+
+    def _withdrawn(self, parsed: keys.HostKey) -> str | None:
+        """A `ready` token withdrawn: a host gone after done, lost during the run, or (before the run)
+        replaced by the next process that claims it; returns the host when it is lost."""
+        host, zid = parsed.host, parsed.zid
+        if parsed.state != "ready":
+            return None
+        claims = self.claims.get(host, [])
+        if zid in claims:
+            claims.remove(zid)
+        if self.ready.get(host) != zid:
+            return None
+        if host in self.done:
+            self.gone.add(host)
+            return None
+        if self.running:
+            reason = self.byes.get(host) or (
+                "gone without a word: it crashed, or was unreachable for more than "
+                f"{self.host_timeouts.get(host, 0):g} s (its host_timeout_s)"
+            )
+            self.lost[host] = LostHost(host, reason, datetime.now(UTC).isoformat(timespec="seconds"))
+            self.lost_at[host] = time.monotonic()
+            return host
+        del self.ready[host]
+        if claims:
+            self.ready[host] = claims[0]
+            log.warning("host %s: process %s takes over as host %s", self.me, claims[0], host)
+        else:
+            log.warning("host %s: host %s left before the run began; waiting for it again", self.me, host)
+        return None
 
     def waiting_for(self) -> set[str]:
         """The hosts not ready yet (before the run) or not done yet (after this host's part ended)."""
@@ -217,4 +280,12 @@ class HostWatch:
         """Wait until every wanted host that was not lost is done (or this host is stopped)."""
         with self._cond:
             while not set(wanted) - {self.me} - set(self.lost) <= self.done and not stop.is_set():
+                self._cond.wait(timeout=POLL_S)
+
+    def wait_gone(self, hosts: Collection[str], timeout_s: float) -> None:
+        """Wait (at most `timeout_s`) until these hosts have left: a hub stays until the hosts behind
+        it have seen everybody done, since their `done` tokens travel through it."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not set(hosts) - {self.me} <= self.gone | set(self.lost) and time.monotonic() < deadline:
                 self._cond.wait(timeout=POLL_S)

@@ -56,6 +56,7 @@ class Inbox(Generic[T]):
         self._dead = 0
         self._high_water = 0
         self._dropped: Counter[str] = Counter()
+        self._overflowed: Counter[str] = Counter()
         self._closed = False
 
     @property
@@ -73,13 +74,23 @@ class Inbox(Generic[T]):
         return self._high_water
 
     @property
+    def overflowed(self) -> Counter[str]:
+        """Per port, data items appended over the capacity after waiting `max_wait_s` (a copy)."""
+        with self._lock:
+            return Counter(self._overflowed)
+
+    @property
     def dropped(self) -> Counter[str]:
         """Per port, data items dropped: by drop_oldest overflow and by put after close (a copy)."""
         with self._lock:
             return Counter(self._dropped)
 
-    def put(self, port: str, item: T, *, control: bool = False, policy: Policy = "block") -> None:
+    def put(
+        self, port: str, item: T, *, control: bool = False, policy: Policy = "block", max_wait_s: float | None = None
+    ) -> None:
         """Append `item` of `port`. Control items never wait; data items follow `policy` when full.
+        With `max_wait_s`, a blocked put waits at most that long, then appends over the capacity
+        (counted in `overflowed`): for callers that must not stall, such as Zenoh's receive thread.
         After `close`, data items are counted as dropped and control items are discarded."""
         with self._lock:
             if control:
@@ -92,8 +103,13 @@ class Inbox(Generic[T]):
                         self._dropped[port] += 1
                         return
                 else:
+                    deadline = None if max_wait_s is None else time.monotonic() + max_wait_s
                     while self._depth >= self._capacity and not self._closed:
-                        self._not_full.wait()
+                        left = None if deadline is None else deadline - time.monotonic()
+                        if left is not None and left <= 0:
+                            self._overflowed[port] += 1
+                            break
+                        self._not_full.wait(left)
             if self._closed:
                 self._dropped[port] += 1
                 return

@@ -27,6 +27,7 @@ from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, Rover
 from rover.messages import Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, OperatorCounts, RunOutcome, Source, Watermark
 from rover.pipeline.validation import Node, Pipeline, host_links
+from rover.runtime.credit import Acks, Credits
 from rover.runtime.hosts import HostWatch, attribute_to_hubs, describe_loss
 from rover.runtime.inbox import Inbox, Policy
 from rover.runtime.scheduler import INF, EventTimeMerger
@@ -50,6 +51,8 @@ LEAVE_S = 10.0
 """The same after a failure, where no time was promised."""
 POLL_S = 0.05
 _KNOWN = typestore.fielddefs
+HUB_LINGER_S = 5.0
+"""How long a hub, done, waits for the hosts behind it to leave first (their `done` tokens pass through it)."""
 INBOX_DROP = "inbox full (a live source's oldest) or after the operator ended"
 
 _SignalHandler = Callable[[int, FrameType | None], Any] | int | None
@@ -95,8 +98,14 @@ class Output:
         )
         self.last_ns: float = -INF
         self.mark_ns: int = -(2**63)
+        self.count = 0
+        self.credits: Credits | None = None
+        """flow control toward consumers on other hosts (None: none, or a live stream that must not wait)"""
 
     def send(self, payload: bytes, stamp: int) -> None:
+        self.count += 1
+        if self.credits is not None:
+            self.credits.wait(self.count)
         self.publisher.put(payload, attachment=codec.attachment(codec.Kind.DATA, stamp, self.mark_ns))
         self.last_ns = max(self.last_ns, stamp)
 
@@ -162,10 +171,10 @@ class Task:
             self.stop.set()
         finally:
             cut = self.stop.is_set() or self.abort.is_set() or bool(self.cut_inputs)
+            self.release()  # first: sending the ends may wait on a congested link
             for out in self.outputs.values():
                 with contextlib.suppress(zenoh.ZError):
                     out.end(cut)
-            self.release()
             self.done.set()
 
     def undeclare(self) -> None:
@@ -175,6 +184,8 @@ class Task:
         for out in self.outputs.values():
             with contextlib.suppress(zenoh.ZError):
                 out.publisher.undeclare()
+                if out.credits is not None:
+                    out.credits.close()
 
     def release(self) -> None:
         """Let go of what producers may be waiting on, once this task handles nothing more."""
@@ -251,6 +262,10 @@ class OperatorTask(Task):
         super().__init__(node, op, pipeline, session, stop, abort)
         self.wire_types = wire_types
         self.policies = policies
+        self.acks: Acks | None = None
+        """acknowledgements of what was taken on inputs fed from other hosts (flow control)"""
+        self.local_threads: frozenset[threading.Thread] = frozenset()
+        """the threads of this process's tasks: their puts may wait on a full inbox for as long as it takes"""
         self.inbox: Inbox[tuple[str, bytes, bytes | None]] = Inbox(node.spec.inbox)
         self.merger = EventTimeMerger(list(node.spec.inputs))
         self.ports = {port: spec for port in node.spec.inputs if (spec := node.cls.input_spec(port)) is not None}
@@ -266,11 +281,14 @@ class OperatorTask(Task):
         inbox, policy = self.inbox, self.policies[port]
 
         def enqueue(sample: zenoh.Sample) -> None:
-            """Runs in the producer's thread (or Zenoh's receive thread): a full inbox makes it wait."""
+            """Runs in the producer's thread (in one process), where a full inbox makes it wait; or in
+            Zenoh's receive thread (from another host), which never waits: the producer there waits
+            for credit instead (`rover/runtime/credit.py`), so the inbox does not overflow."""
             att = sample.attachment
             raw = att.to_bytes() if att else None
             item = (str(sample.encoding), sample.payload.to_bytes(), raw)
-            inbox.put(port, item, control=codec.is_control(raw), policy=policy)
+            local = threading.current_thread() in self.local_threads
+            inbox.put(port, item, control=codec.is_control(raw), policy=policy, max_wait_s=None if local else 0.0)
 
         return enqueue
 
@@ -287,6 +305,9 @@ class OperatorTask(Task):
         for subscriber in self.subscribers:
             with contextlib.suppress(zenoh.ZError):
                 subscriber.undeclare()
+        if self.acks is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self.acks.close()
         super().undeclare()
 
     def count_inbox_drops(self) -> None:
@@ -305,7 +326,7 @@ class OperatorTask(Task):
             self._drop(port, str(exc))
             return
         if kind in (codec.Kind.END, codec.Kind.CUT):
-            if kind == codec.Kind.CUT:
+            if kind == codec.Kind.CUT and not self.merger.ended(port):
                 self.cut_inputs.add(port)
             self.merger.end(port)
             return
@@ -344,6 +365,8 @@ class OperatorTask(Task):
                 port, (encoding, payload, att) = self.inbox.get(timeout=POLL_S)
             except queue.Empty:
                 continue
+            if self.acks is not None and not codec.is_control(att):
+                self.acks.took(port)
             self._accept(port, encoding, payload, att)
             for port, stamp, msg in merger.pop_ready():
                 if self.abort.is_set():
@@ -545,16 +568,18 @@ class Runner:
         if self.interrupted:
             deadline = (self.stopped_at or time.monotonic()) + STOP_BUDGET_S
             return RunOutcome("interrupted", self._stop_reason(), counts, deadline)
-        links = host_links(self.pipeline.spec)
-        lost = attribute_to_hubs(links, self.host or "", self.watch.lost) if self.watch is not None else {}
+        links, me = host_links(self.pipeline.spec), self.host or ""
+        lost, lost_at = (dict(self.watch.lost), dict(self.watch.lost_at)) if self.watch is not None else ({}, {})
         nodes = self.pipeline.nodes
         cut = {nodes[t.node.spec.inputs[port].source].spec.host or "" for t in self.tasks for port in t.cut_inputs}
         if lost or cut:
             if lost:
-                reason = describe_loss(links, self.host or "", lost)
+                reason = describe_loss(links, me, lost, lost_at)
             else:
                 reason = f"the streams from {', '.join(sorted(cut))} ended early: a host upstream was stopped or lost"
-            return RunOutcome("partial", f"results are partial: {reason}", counts, lost=tuple(lost.values()))
+            blamed = attribute_to_hubs(links, me, lost, lost_at)
+            ordered = tuple(blamed[h] for h in sorted(lost, key=lambda h: (lost_at[h], h)))
+            return RunOutcome("partial", f"results are partial: {reason}", counts, lost=ordered)
         return RunOutcome("complete", "", counts)
 
     def _stop_reason(self) -> str:
@@ -583,18 +608,27 @@ class Runner:
         name = self.pipeline.name
         args = (name, session, self.stop, self.abort)
         try:
-            self.tasks = [
-                OperatorTask(n, ops[n.name], *args, self._wire_types(n), self._policies(n))
-                for n in self.nodes
-                if not issubclass(n.cls, Source)
-            ]
-            self.tasks += [SourceTask(n, ops[n.name], *args) for n in self.nodes if issubclass(n.cls, Source)]
+            # one at a time: what was built is undeclared and released in `finally` if a later one fails
+            for n in self.nodes:
+                if not issubclass(n.cls, Source):
+                    self.tasks.append(OperatorTask(n, ops[n.name], *args, self._wire_types(n), self._policies(n)))
+            for n in self.nodes:
+                if issubclass(n.cls, Source):
+                    self.tasks.append(SourceTask(n, ops[n.name], *args))
+            threads = frozenset(t.thread for t in self.tasks)
+            for task in self.tasks:
+                if isinstance(task, OperatorTask):
+                    task.local_threads = threads
+            if self.distributed:
+                self._flow_control(session)
             if self.distributed:
                 self._run_with_hosts(session)
             else:
                 self._start_and_wait()
         finally:
             self.abort.set()
+            for task in self.tasks:  # a producer may wait on a consumer that never started or has stopped
+                task.release()
             joined_by = time.monotonic() + (JOIN_S if self.interrupted else LEAVE_S)
             for task in self.tasks:
                 if task.thread.ident is not None:
@@ -608,6 +642,8 @@ class Runner:
                     task.release()
                     task.count_inbox_drops()
                     queue_line = f"; queue high-water {task.inbox.high_water} of {task.inbox.capacity}"
+                    if over := sum(task.inbox.overflowed.values()):
+                        queue_line += f" ({over} from other hosts over the bound)"
                 line = task.stats.line(task.name) + queue_line
                 log.log(logging.WARNING if task.stats.dropped else logging.INFO, "%s", line)
                 _report_drops(task)
@@ -625,18 +661,35 @@ class Runner:
         nodes = self.pipeline.nodes
         return {port: nodes[w.source].output_type(w.source_port) for port, w in node.spec.inputs.items()}
 
+    def _live(self, name: str) -> bool:
+        """Whether a live source feeds this operator's outputs (they must never wait)."""
+        n = self.pipeline.nodes[name]
+        if issubclass(n.cls, Source):
+            return n.cls.is_live(n.params)
+        return any(self._live(w.source) for w in n.spec.inputs.values())
+
     def _policies(self, node: Node) -> dict[str, Policy]:
         """Per input port: a stream that a live source feeds drops its oldest when the inbox is full;
         any other (a replay) makes its producer wait, so nothing is lost."""
-        nodes = self.pipeline.nodes
+        return {port: "drop_oldest" if self._live(w.source) else "block" for port, w in node.spec.inputs.items()}
 
-        def live(name: str) -> bool:
-            n = nodes[name]
-            if issubclass(n.cls, Source):
-                return n.cls.is_live(n.params)
-            return any(live(w.source) for w in n.spec.inputs.values())
-
-        return {port: "drop_oldest" if live(w.source) else "block" for port, w in node.spec.inputs.items()}
+    def _flow_control(self, session: zenoh.Session) -> None:
+        """Credits on every output (not live) with consumers on other hosts; acks on every input fed
+        from another host."""
+        nodes, name = self.pipeline.nodes, self.pipeline.name
+        for task in self.tasks:
+            if isinstance(task, OperatorTask):
+                remote = [p for p, w in task.node.spec.inputs.items() if nodes[w.source].spec.host != self.host]
+                if remote:
+                    task.acks = Acks(session, name, task.name, remote, max(1, task.inbox.capacity // 4))
+            if self._live(task.name):
+                continue
+            for port, out in task.outputs.items():
+                consumers = [(n, w) for n, w in self.pipeline.consumers(task.name, port) if n.spec.host != self.host]
+                if consumers:
+                    windows = {(n.name, w.port): n.spec.inbox for n, w in consumers}
+                    hosts = {(n.name, w.port): n.spec.host or "" for n, w in consumers}
+                    out.credits = Credits(session, name, windows, hosts, self.abort)
 
     def status(self) -> HostStatus:
         """This host's snapshot for `rover status`."""
@@ -668,7 +721,7 @@ class Runner:
             self.host or "",
             self.state,
             sorted(watch.waiting_for()) if watch else [],
-            sorted(watch.lost) if watch else [],
+            watch.lost_hosts() if watch else [],
             time.monotonic() - self.started,
             time.time(),
             operators,
@@ -676,7 +729,7 @@ class Runner:
 
     def _answer_status(self, query: zenoh.Query) -> None:
         with contextlib.suppress(zenoh.ZError):
-            query.reply(query.key_expr, self.status().to_json())
+            query.reply(status_key(self.pipeline.name, self.host or ""), self.status().to_json())
 
     def _run_with_hosts(self, session: zenoh.Session) -> None:
         """Start once every host has subscribed; leave once every host is done or lost. A lost host's
@@ -684,13 +737,12 @@ class Runner:
         assert self.host is not None, "a distributed run has a host"
         spec = self.pipeline.spec.hosts[self.host]
         wanted = self.pipeline.hosts_in_use()
-        hosts = self.pipeline.spec.hosts
-        self.watch = watch = HostWatch(
-            session, self.pipeline.name, self.host, hosts, self.pipeline.digest(), spec.host_timeout_s
-        )
+        timeouts = {name: h.host_timeout_s for name, h in self.pipeline.spec.hosts.items()}
+        self.watch = watch = HostWatch(session, self.pipeline.name, self.host, timeouts, self.pipeline.digest())
         watch.on_lost = self._cut_streams_of
-        status = session.declare_queryable(status_key(self.pipeline.name, self.host), self._answer_status)
+        status: zenoh.Queryable[None] | None = None
         try:
+            status = session.declare_queryable(status_key(self.pipeline.name, self.host), self._answer_status)
             watch.declare("ready")
             hint = f" ({self.host} connects to {', '.join(spec.connect)}: is the host listening there running?)"
             if not watch.wait_ready(wanted, self.stop, spec.wait_timeout_s, hint if spec.connect else ""):
@@ -701,10 +753,14 @@ class Runner:
                 self.state = "finishing"
                 watch.declare("done")
                 watch.wait_done(wanted, self.stop)
+                behind = self.pipeline.hubs().get(self.host)
+                if behind and not self.stop.is_set():
+                    watch.wait_gone(behind, HUB_LINGER_S)
             self.state = "done"
         finally:
             self._say_bye()
-            status.undeclare()
+            if status is not None:
+                status.undeclare()
             watch.close()
 
     def _say_bye(self) -> None:
@@ -714,9 +770,13 @@ class Runner:
                 self.watch.say_bye(self._stop_reason())
 
     def _cut_streams_of(self, host: str) -> None:
-        """End every input stream that comes from an operator on `host`."""
+        """End every input stream that comes from an operator on `host`, and stop waiting for credit
+        from the consumers there."""
         nodes = self.pipeline.nodes
         for task in self.tasks:
+            for out in task.outputs.values():
+                if out.credits is not None:
+                    out.credits.host_lost(host)
             if isinstance(task, OperatorTask):
                 for port, wire in task.node.spec.inputs.items():
                     if nodes[wire.source].spec.host == host:

@@ -27,6 +27,11 @@ def port_key(pipeline: str, operator: str, port: str) -> str:
     return f"{PREFIX}/{pipeline}/{operator}/{port}"
 
 
+def ack_key(pipeline: str, operator: str, port: str) -> str:
+    """What `operator` took from its inbox on input `port`, for flow control across hosts."""
+    return f"{PREFIX}/{pipeline}/_ack/{operator}/{port}"
+
+
 def host_token(pipeline: str, key: HostKey) -> str:
     """The key a host declares when it is `ready` (subscribed) and `done`, or puts its `bye` on."""
     return f"{PREFIX}/{pipeline}/{HOSTS}/{key.host}/{key.digest}/{key.zid}/{key.state}"
