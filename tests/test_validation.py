@@ -255,7 +255,7 @@ def test_check_rejects_out_of_range_values_with_their_positions(tmp_path):
     reported('"tcp/127.0.0.1:${port}"', "port 99999 is outside 1-65535")
     reported(".inf", "connect_timeout_s", "finite")
     reported("0, wait", "connect_timeout_s", "must be > 0")
-    reported("-3}", "host_timeout_s", "must be > 0")
+    reported("-3}", "host_timeout_s", "must be >= 1 and <= 3600")
     reported("soon}", "wait_timeout_s")
     reported("0, inputs", "inbox", "must be > 0")
     reported("-1}", "param 'speed' of operator 'replay'", "float > 0", "got -1")

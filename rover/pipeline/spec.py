@@ -11,7 +11,7 @@ import re
 from dataclasses import dataclass, field
 from difflib import get_close_matches
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from rover.errors import BadInput, Diagnostic
 from rover.pipeline import params as P
@@ -31,6 +31,8 @@ HOST_KEYS = ("listen", "connect", "host_timeout_s", "wait_timeout_s", "connect_t
 OPERATOR_KEYS = ("uses", "host", "inputs", "params", "description", "inbox")
 DEFAULT_INBOX = 1024
 """Data messages per operator inbox (its memory bound: about that many messages of its inputs)."""
+HostTimeout = Annotated[float, P.Range(ge=1.0, le=3600.0)]
+"""A lease below 1 s breaks on ordinary hiccups; above an hour a lost host is never noticed in practice."""
 DEFAULT_HOST_TIMEOUT_S = 15.0
 """A host unreachable this long is lost (the run goes on without it: partial results)."""
 DEFAULT_WAIT_TIMEOUT_S = 120.0
@@ -218,11 +220,15 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                 else:
                     getattr(host, kind).append(ep)
         # connect_timeout_s is the older name of wait_timeout_s (hosts now retry connecting all that time)
-        timeouts = (("host_timeout_s", "host_timeout_s"), ("connect_timeout_s", "wait_timeout_s"))
-        for key, attr in (*timeouts, ("wait_timeout_s", "wait_timeout_s")):
+        timeouts: tuple[tuple[str, str, Any], ...] = (
+            ("host_timeout_s", "host_timeout_s", HostTimeout),
+            ("connect_timeout_s", "wait_timeout_s", P.PositiveFloat),
+            ("wait_timeout_s", "wait_timeout_s", P.PositiveFloat),
+        )
+        for key, attr, kind in timeouts:
             if key in hval:
                 try:
-                    setattr(host, attr, P.coerce(hval[key], P.PositiveFloat))
+                    setattr(host, attr, P.coerce(hval[key], kind))
                 except P.ParamTypeError as exc:
                     col.add(path + (key,), f"{key}: {exc}")
         hosts[hname] = host
