@@ -31,6 +31,19 @@ def start(target: Callable[[], None]) -> threading.Thread:
     return thread
 
 
+def blocked_put(inbox: Inbox[object], port: str, item: object) -> threading.Event:
+    """Put from another thread, once it is blocked on the full inbox; the event is set when it returns."""
+    done = threading.Event()
+
+    def produce() -> None:
+        inbox.put(port, item)
+        done.set()
+
+    wait_blocked(inbox, start(produce))
+    assert not done.is_set()
+    return done
+
+
 def wait_blocked(inbox: Inbox[object], thread: threading.Thread) -> None:
     """Wait, at most WAIT_S, until `thread` waits in `put` on the inbox's not-full condition: its
     waiter list (CPython's) is the proof that the producer is blocked, not merely slow."""
@@ -60,18 +73,9 @@ def test_blocked_producer_resumes_when_the_consumer_takes_one():
     inbox: Inbox[object] = Inbox(capacity=2)
     inbox.put("a", 1)
     inbox.put("a", 2)
-    done = threading.Event()
-
-    def produce() -> None:
-        inbox.put("a", 3)
-        done.set()
-
-    thread = start(produce)
-    wait_blocked(inbox, thread)
-    assert not done.is_set()
+    done = blocked_put(inbox, "a", 3)
     assert inbox.get(timeout=WAIT_S) == ("a", 1)
     assert done.wait(WAIT_S)
-    thread.join(WAIT_S)
     assert drain(inbox) == [("a", 2), ("a", 3)]
     assert inbox.high_water == 2
     assert not inbox.dropped
@@ -124,17 +128,9 @@ def test_drop_oldest_under_constant_overflow_keeps_the_newest():
 def test_close_releases_a_blocked_producer_and_counts_the_drop():
     inbox: Inbox[object] = Inbox(capacity=1)
     inbox.put("a", 1)
-    done = threading.Event()
-
-    def produce() -> None:
-        inbox.put("b", 2)
-        done.set()
-
-    thread = start(produce)
-    wait_blocked(inbox, thread)
+    done = blocked_put(inbox, "b", 2)
     inbox.close()
     assert done.wait(WAIT_S)
-    thread.join(WAIT_S)
     assert inbox.dropped == {"b": 1}
     inbox.put("a", 3)  # later puts neither block nor raise
     inbox.put("a", "end", control=True)

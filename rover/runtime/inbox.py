@@ -50,6 +50,10 @@ class Inbox(Generic[T]):
         self._lock = threading.Lock()
         self._not_empty = threading.Condition(self._lock)
         self._not_full = threading.Condition(self._lock)
+        self._resume_at = capacity // 2
+        """blocked producers are woken when the inbox has drained to this depth, not at every free
+        slot: waking them per message makes the two threads trade the GIL for every item"""
+        self._waiting = 0
         self._queue: deque[_Entry[T]] = deque()
         self._by_port: dict[str, deque[_Entry[T]]] = {}
         self._depth = 0
@@ -109,7 +113,11 @@ class Inbox(Generic[T]):
                         if left is not None and left <= 0:
                             self._overflowed[port] += 1
                             break
-                        self._not_full.wait(left)
+                        self._waiting += 1
+                        try:
+                            self._not_full.wait(left)
+                        finally:
+                            self._waiting -= 1
             if self._closed:
                 self._dropped[port] += 1
                 return
@@ -137,7 +145,8 @@ class Inbox(Generic[T]):
                 head = self._by_port[entry.port].popleft()
                 assert head is entry, "a port's live data entries are in queue order"
                 self._depth -= 1
-                self._not_full.notify()
+                if self._waiting and self._depth <= self._resume_at:
+                    self._not_full.notify_all()
             return entry.port, entry.item
 
     def close(self) -> None:

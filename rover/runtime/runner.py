@@ -621,7 +621,6 @@ class Runner:
                     task.local_threads = threads
             if self.distributed:
                 self._flow_control(session)
-            if self.distributed:
                 self._run_with_hosts(session)
             else:
                 self._start_and_wait()
@@ -639,7 +638,6 @@ class Runner:
             for task in self.tasks:
                 queue_line = ""
                 if isinstance(task, OperatorTask):
-                    task.release()
                     task.count_inbox_drops()
                     queue_line = f"; queue high-water {task.inbox.high_water} of {task.inbox.capacity}"
                     if over := sum(task.inbox.overflowed.values()):
