@@ -416,8 +416,11 @@ class SlidingWindow:
         # window's are scaled up for the errors consecutive bursts share, which is no doubt about a choice)
         raw = r * self.settings.aoa_std_scale
         likely = np.where(np.isfinite(raw), 0.5 * raw**2 + np.log(stds) - self._log_weights(tag, jumps), np.inf)
-        chance = np.exp(-(likely - likely[rows, choice][:, None]))
-        chance /= chance.sum(axis=1, keepdims=True)
+        # normalized against each row's most likely candidate, so no exponent overflows (inf / inf)
+        low = likely.min(axis=1, keepdims=True)
+        finite = np.isfinite(likely)
+        chance = np.exp(-(np.where(finite, likely, 0.0) - np.where(np.isfinite(low), low, 0.0))) * finite
+        chance /= np.maximum(chance.sum(axis=1, keepdims=True), np.finfo(float).tiny)
         apart = np.where(np.isfinite(angles), wrap(angles - angles[rows, choice][:, None]), 0.0)
         doubt = np.sum(chance * apart**2, axis=1)
         use = np.array(self.active, bool)[tag]
