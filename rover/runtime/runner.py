@@ -310,10 +310,10 @@ class OperatorTask(Task):
                 self.acks.close()
         super().undeclare()
 
-    def count_inbox_drops(self) -> None:
-        """Add what the inbox dropped (a live source's oldest, or anything after this task ended) to the stats."""
-        for port, n in self.inbox.dropped.items():
-            self.stats.dropped[f"{port}:{INBOX_DROP}"] += n
+    def inbox_drops(self) -> dict[str, int]:
+        """What the inbox dropped (a live source's oldest, or anything after this task ended), keyed
+        like the stats' own drops."""
+        return {f"{port}:{INBOX_DROP}": n for port, n in self.inbox.dropped.items()}
 
     def cut(self, port: str) -> None:
         """End an input's stream here: its producer's host was lost (what is queued is still handled)."""
@@ -638,7 +638,7 @@ class Runner:
             for task in self.tasks:
                 queue_line = ""
                 if isinstance(task, OperatorTask):
-                    task.count_inbox_drops()
+                    task.stats.dropped.update(task.inbox_drops())
                     queue_line = f"; queue high-water {task.inbox.high_water} of {task.inbox.capacity}"
                     if over := sum(task.inbox.overflowed.values()):
                         queue_line += f" ({over} from other hosts over the bound)"
@@ -698,8 +698,7 @@ class Runner:
             queue, high = 0, 0
             if isinstance(task, OperatorTask):
                 queue, high = task.inbox.depth, task.inbox.high_water
-                for port, n in task.inbox.dropped.items():
-                    dropped[f"{port}:{INBOX_DROP}"] = n
+                dropped.update(task.inbox_drops())
             operators.append(
                 OperatorStatus(
                     task.name,
