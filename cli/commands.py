@@ -51,8 +51,12 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     return values
 
 
-def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
-    """Summary line and warnings of one pipeline or setup file; raises on problems."""
+def _check_one(
+    file: str, overrides: dict[str, Any], host: str | None = None, security: bool = False
+) -> tuple[str, list[str]]:
+    """Summary line and warnings of one pipeline or setup file; raises on problems. Under
+    `security:` the certificates are checked too: every host's, or only `host`'s (on a deployed
+    machine, which holds its own key only); `security` adds the generated access rules."""
     from rover.formats.rig import parse_rig
     from rover.operators.channel_sweep.channel_plan import best_excitation, conflicts, max_tags
     from rover.pipeline.spec import parse, read_document
@@ -89,14 +93,30 @@ def _check_one(file: str, overrides: dict[str, Any]) -> tuple[str, list[str]]:
             f"(at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"
         ), warnings
     spec, problems = parse(doc, overrides)
-    return check(spec, BUILTINS, problems).summary(), []
+    summary = check(spec, BUILTINS, problems).summary()
+    if spec.security is None:
+        if security:
+            summary += "\n(no security: section: every host accepts any connection; see docs/security.md)"
+        return summary, []
+    from rover.security.acl import describe
+    from rover.security.check import check_security
+
+    if host is not None and host not in spec.hosts:
+        raise BadInput(f"{file}: --host {host!r} is not declared under hosts: ({', '.join(spec.hosts)})")
+    found, warnings = check_security(
+        spec, None if host is None else [host], monitor=host is None and spec.security.monitor is not None
+    )
+    if found:
+        raise SpecError(found)
+    summary += f"; mutual TLS, certificates of {host or 'every host'} valid"
+    return (summary + "\n" + describe(spec) if security else summary), warnings
 
 
 def cmd_check(args: argparse.Namespace) -> int:
     problems: list[str] = []
     for file in args.files:
         try:
-            summary, warnings = _check_one(file, _overrides(args))
+            summary, warnings = _check_one(file, _overrides(args), args.host, args.security)
             print(summary)
             for line in warnings:
                 print(line, file=sys.stderr)
@@ -155,7 +175,19 @@ def cmd_status(args: argparse.Namespace) -> int:
     if not endpoints:
         raise BadInput(f"{args.pipeline}: no host of pipeline {spec.name} listens on an endpoint: pass --connect")
     expected = sorted({op.host for op in spec.operators.values() if op.host})
-    with StatusClient(spec.name, endpoints, args.timeout) as client:
+    tls = None
+    if spec.security is not None:
+        from rover.security.check import check_security
+        from rover.transport.session import TlsFiles
+
+        found, warnings = check_security(spec, [], monitor=True)
+        if found:
+            raise SpecError(found)
+        for line in warnings:
+            print(line, file=sys.stderr)
+        assert spec.security.monitor is not None  # check_security(monitor=True) made sure
+        tls = TlsFiles(spec.security.ca, spec.security.monitor.cert, spec.security.monitor.key)
+    with StatusClient(spec.name, endpoints, args.timeout, tls) as client:
 
         def snapshot() -> tuple[dict[str, HostStatus], list[str]]:
             statuses, notes = collect(client.query(), spec.name)
@@ -177,6 +209,64 @@ def cmd_status(args: argparse.Namespace) -> int:
                 later, notes = snapshot()
                 previous, current = {**previous, **current}, later
                 live.update(render(current, previous, expected, notes), refresh=True)
+
+
+def _names(args: argparse.Namespace, hosts: list[str]) -> dict[str, list[str]]:
+    given: dict[str, list[str]] = {}
+    for item in args.names or []:
+        for pair in item.split(","):
+            host, sep, name = pair.partition("=")
+            if not (sep and host and name):
+                raise BadInput(f"--names {item!r}: expected HOST=DNS_OR_IP,..., e.g. nuc=10.0.0.5,nuc=nuc.lab")
+            if host not in hosts:
+                raise BadInput(f"--names {item!r}: {host!r} is not one of the hosts ({', '.join(hosts)})")
+            given.setdefault(host, []).append(name)
+    return given
+
+
+def cmd_certs(args: argparse.Namespace) -> int:
+    """Issue a CA and one certificate per host (and the monitor) into a folder; print the
+    security: section that uses them."""
+    from rover.pipeline.spec import MONITOR, NAME_RE, parse, read_document
+    from rover.pipeline.validation import listens_on_wildcard, served_addresses
+    from rover.security.certs import issue
+
+    spec = None
+    if args.pipeline:
+        spec, problems = parse(read_document(args.pipeline), _overrides(args))
+        if problems:
+            raise SpecError(problems)
+    hosts = [h.strip() for h in args.hosts.split(",") if h.strip()] if args.hosts else list(spec.hosts if spec else [])
+    if not hosts:
+        raise BadInput("rover certs: name the hosts (--hosts nuc,base,laptop) or give a pipeline with hosts:")
+    for host in hosts:
+        if not NAME_RE.match(host) or host == MONITOR:
+            raise BadInput(f"--hosts: {host!r} is not a host name (letters, digits, _ or -; {MONITOR!r} is reserved)")
+    if not 1 <= args.days <= 3650:
+        raise BadInput(f"--days: between 1 and 3650, got {args.days}")
+    given = _names(args, hosts)
+    names: dict[str, list[str]] = {}
+    for host in hosts:
+        derived: list[str] = []
+        if spec is not None and host in spec.hosts:
+            derived = [address for address, _why in served_addresses(spec, host)]
+            if listens_on_wildcard(spec, host):
+                derived += ["localhost", "127.0.0.1"]  # where `rover status` on that machine connects
+        names[host] = given.get(host, derived)
+    label = f"rover {spec.name}" if spec else "rover"
+    issued = issue(args.output, names, monitor=args.monitor, label=label, days=args.days, force=args.force)
+    print(f"{issued.ca}: CA certificate ({label} CA; its private key was not kept: a new host means a new set)")
+    for ident, (cert, key) in issued.identities.items():
+        shown = ", ".join([ident] + names.get(ident, []))
+        print(f"{cert}, {key}: {ident} (names: {shown})")
+    out = args.output
+    print("\nsecurity:  # give each host only the CA, its own certificate and its own key")
+    print(f"  ca: {out}/ca.pem\n  hosts:")
+    for host in hosts:
+        print(f"    {host}: {{cert: {out}/{host}.pem, key: {out}/{host}.key}}")
+    if args.monitor:
+        print(f"  monitor: {{cert: {out}/{MONITOR}.pem, key: {out}/{MONITOR}.key}}")
+    return 0
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -574,8 +664,26 @@ def parser() -> argparse.ArgumentParser:
 
     p = command("check", help="validate pipeline and setup files; report every problem as FILE:LINE:COL")
     p.add_argument("files", nargs="+", metavar="FILE")
+    p.add_argument("--host", help="under security:, check only this host's certificate and key (and the CA)")
+    p.add_argument("--security", action="store_true", help="also print the access rules generated from the wiring")
     _add_set(p)
     p.set_defaults(func=cmd_check)
+
+    p = command("certs", help="a CA and per-host certificates for a pipeline's security: section")
+    p.add_argument("pipeline", nargs="?", help="take host names and addresses from this pipeline's endpoints")
+    p.add_argument("--hosts", help="comma-separated host names (default: the pipeline's hosts)")
+    p.add_argument("--monitor", action="store_true", help="also a read-only identity for rover status")
+    p.add_argument(
+        "--names",
+        action="append",
+        metavar="HOST=DNS_OR_IP,...",
+        help="the names a host is reached at (replace those taken from the pipeline); repeat HOST= for several",
+    )
+    p.add_argument("--days", type=int, default=365, help="lifetime of the host certificates (default 365)")
+    p.add_argument("-o", "--output", required=True, help="the folder to write into")
+    p.add_argument("--force", action="store_true", help="replace existing certificates in the folder")
+    _add_set(p)
+    p.set_defaults(func=cmd_certs)
 
     p = command("graph", help="print the pipeline as Mermaid (default) or DOT")
     p.add_argument("pipeline", nargs="?", help="pipeline file (default: the one shipped with rover)")

@@ -26,7 +26,11 @@ ENDPOINT_RE = re.compile(
 PORT_RE = re.compile(r":(\d{1,5})$")
 MAX_PORT = 65535
 
-TOP_KEYS = ("version", "name", "description", "vars", "hosts", "operators")
+TOP_KEYS = ("version", "name", "description", "vars", "hosts", "security", "operators")
+SECURITY_KEYS = ("ca", "hosts", "monitor")
+IDENTITY_KEYS = ("cert", "key")
+MONITOR = "monitor"
+"""The read-only identity of `rover status` (a reserved host name under security:)."""
 HOST_KEYS = ("listen", "connect", "host_timeout_s", "wait_timeout_s", "connect_timeout_s")
 OPERATOR_KEYS = ("uses", "host", "inputs", "params", "description", "inbox")
 DEFAULT_INBOX = 1024
@@ -77,6 +81,24 @@ class HostSpec:
     wait_timeout_s: float = DEFAULT_WAIT_TIMEOUT_S
 
 
+@dataclass(frozen=True)
+class Identity:
+    """A certificate and its private key (PEM files), as the pipeline names them."""
+
+    cert: str
+    key: str
+
+
+@dataclass
+class SecuritySpec:
+    """Mutual TLS between the hosts: the CA every certificate is checked against, and one identity
+    per host (its certificate's common name is the host's name), plus the optional monitor's."""
+
+    ca: str
+    hosts: dict[str, Identity] = field(default_factory=dict)
+    monitor: Identity | None = None
+
+
 @dataclass
 class OperatorSpec:
     name: str
@@ -102,6 +124,7 @@ class PipelineSpec:
     doc: Located
     set_vars: dict[str, Any] = field(default_factory=dict)
     """variables given on the command line (`--set NAME=VALUE`, `--dataset`, `--output`, `--speed`)"""
+    security: SecuritySpec | None = None
 
     def command_line(self) -> dict[str, Any]:
         """What the command line changed: `{"vars": {...}, "params": {"OPERATOR.PARAM": value}}`, for run.json."""
@@ -233,6 +256,8 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                     col.add(path + (key,), f"{key}: {exc}")
         hosts[hname] = host
 
+    security = _security(top, hosts, variables, col) if "security" in top else None
+
     operators: dict[str, OperatorSpec] = {}
     raw_ops = col.mapping(top.get("operators"), ("operators",), "operators")
     if "operators" not in top:
@@ -278,7 +303,69 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                 f"--set {op_name}.{param}: the pipeline has no operator {op_name!r}{did_you_mean(op_name, raw_ops)}",
                 key=True,
             )
-    return PipelineSpec(doc.file, name, variables, hosts, operators, doc, set_vars), col.problems
+    return PipelineSpec(doc.file, name, variables, hosts, operators, doc, set_vars, security), col.problems
+
+
+def _identity(value: Any, path: tuple[Any, ...], what: str, col: _Collector) -> Identity | None:
+    value = col.mapping(value, path, what)
+    col.known_keys(value, path, IDENTITY_KEYS, what)
+    cert = col.string(value.get("cert"), path + ("cert",), f"{what}: cert") if value else None
+    key = col.string(value.get("key"), path + ("key",), f"{what}: key") if value else None
+    if not value:
+        col.add(path, f"{what} needs cert: and key: (PEM files, e.g. from `rover certs`)")
+    return Identity(cert, key) if cert and key else None
+
+
+def _security(
+    top: dict[Any, Any], hosts: dict[str, HostSpec], variables: dict[str, Any], col: _Collector
+) -> SecuritySpec | None:
+    """The security: section; with it every endpoint must be tls/ (mutual TLS, nothing in clear)."""
+    path: tuple[Any, ...] = ("security",)
+    raw = _substitute(col.mapping(top.get("security"), path, "security"), path, variables, col)
+    col.known_keys(raw, path, SECURITY_KEYS, "security")
+    if not hosts:
+        col.add(path, "security: protects the links between hosts; this pipeline declares no hosts:", key=True)
+        return None
+    ca = col.string(raw.get("ca"), path + ("ca",), "security: ca (the CA certificate, a PEM file)")
+    security = SecuritySpec(ca or "")
+    entries = col.mapping(raw.get("hosts"), path + ("hosts",), "security: hosts")
+    for name, value in entries.items():
+        if name not in hosts:
+            col.add(
+                path + ("hosts", name),
+                f"security: hosts: {name!r} is not a declared host{did_you_mean(name, hosts)}",
+                key=True,
+            )
+            continue
+        ident = _identity(value, path + ("hosts", name), f"security: host {name!r}", col)
+        if ident:
+            security.hosts[name] = ident
+    for name in hosts:
+        if name == MONITOR:
+            col.add(
+                ("hosts", name),
+                f"host name {MONITOR!r} is reserved for the read-only identity under security:",
+                key=True,
+            )
+        elif name not in entries:
+            col.add(
+                path + ("hosts",),
+                f"security: host {name!r} has no certificate (hosts: {name}: {{cert: ..., key: ...}})",
+                key=True,
+            )
+    if "monitor" in raw:
+        security.monitor = _identity(raw["monitor"], path + ("monitor",), "security: monitor", col)
+    for host in hosts.values():
+        for kind in ("listen", "connect"):
+            for i, ep in enumerate(getattr(host, kind)):
+                if not ep.startswith("tls/"):
+                    verb = "listens on" if kind == "listen" else "connects to"
+                    col.add(
+                        ("hosts", host.name, kind, i),
+                        f"host {host.name!r} {verb} {ep}: with security: every endpoint is tls/ "
+                        f"(mutual TLS), e.g. tls/{ep.partition('/')[2]}",
+                    )
+    return security if ca else None
 
 
 def read_yaml_text(path: str | Path) -> str:

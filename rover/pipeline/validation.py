@@ -271,6 +271,26 @@ def unreachable_without(links: Mapping[str, Collection[str]], me: str, gone: str
     return set(links) - seen
 
 
+def served_addresses(spec: PipelineSpec, host: str) -> list[tuple[str, str]]:
+    """The addresses TLS checks `host`'s certificate against, each with why: where it listens (but a
+    wildcard) and where the others connect to it. A connect endpoint that several hosts may serve
+    (a DNS name on a port several listen on) is left out: names are not resolved here."""
+    out = []
+    for ep in spec.hosts[host].listen:
+        address = _endpoint_parts(ep)[1]
+        if not _is_wildcard(address):
+            out.append((address, f"{host} listens on {ep}"))
+    for other in spec.hosts.values():
+        for ep in other.connect if other.name != host else ():
+            if _listeners(spec, other.name, ep) == [host]:
+                out.append((_endpoint_parts(ep)[1], f"{other.name} connects to {ep}"))
+    return list(dict.fromkeys(out))
+
+
+def listens_on_wildcard(spec: PipelineSpec, host: str) -> bool:
+    return any(_is_wildcard(_endpoint_parts(ep)[1]) for ep in spec.hosts[host].listen)
+
+
 def host_links(spec: PipelineSpec) -> dict[str, set[str]]:
     """Which hosts talk to each other directly: one connects where the other listens."""
     links: dict[str, set[str]] = {h: set() for h in spec.hosts}

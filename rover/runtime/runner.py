@@ -23,7 +23,7 @@ from typing import Any
 
 import zenoh
 
-from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError, TransportError
+from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError, SpecError, TransportError
 from rover.messages import Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, OperatorCounts, RunOutcome, Source, Watermark
 from rover.pipeline.validation import Node, Pipeline, host_links
@@ -32,8 +32,10 @@ from rover.runtime.hosts import HostWatch, attribute_to_hubs, describe_loss
 from rover.runtime.inbox import Inbox, Policy
 from rover.runtime.scheduler import INF, EventTimeMerger
 from rover.runtime.status import HostStatus, OperatorStatus, status_key
+from rover.security.acl import access_control
+from rover.security.check import check_security
 from rover.transport import codec, keys
-from rover.transport.session import SessionSpec, open_session
+from rover.transport.session import SessionSpec, TlsFiles, open_session
 
 log = logging.getLogger("rover")
 
@@ -459,8 +461,13 @@ class Runner:
     def session_spec(self) -> SessionSpec:
         if not self.distributed or self.host is None:
             return SessionSpec()
-        h = self.pipeline.spec.hosts[self.host]
-        return SessionSpec(h.listen, h.connect, h.host_timeout_s, self.host)
+        spec = self.pipeline.spec
+        h = spec.hosts[self.host]
+        if spec.security is None:
+            return SessionSpec(h.listen, h.connect, h.host_timeout_s, self.host)
+        ident = spec.security.hosts[self.host]
+        tls = TlsFiles(spec.security.ca, ident.cert, ident.key)
+        return SessionSpec(h.listen, h.connect, h.host_timeout_s, self.host, tls, access_control(spec, self.host))
 
     def request_stop(self, signum: int) -> None:
         """The first signal stops the run; later ones change nothing (the outputs are being finished).
@@ -804,4 +811,10 @@ def run(pipeline: Pipeline, host: str | None = None) -> int:
         raise BadInput(
             f"{pipeline.spec.file}: --host {host!r} is not declared under hosts: ({', '.join(pipeline.spec.hosts)})"
         )
+    if host is not None and pipeline.spec.security is not None:
+        problems, warnings = check_security(pipeline.spec, [host])
+        for line in warnings:
+            log.warning("%s", line)
+        if problems:
+            raise SpecError(problems)
     return Runner(pipeline, host).run()

@@ -16,6 +16,7 @@ import zenoh
 
 from rover.errors import TransportError
 from rover.runtime.status import status_selector
+from rover.transport.session import TlsFiles, tls_config
 
 log = logging.getLogger("rover.status")
 
@@ -30,7 +31,7 @@ def local_endpoint(endpoint: str) -> str:
     return f"{match[1]}{WILDCARDS[match[2]]}{match[3]}" if match else endpoint
 
 
-def _client_config(endpoints: list[str], open_timeout_s: float) -> zenoh.Config:
+def _client_config(endpoints: list[str], open_timeout_s: float, tls: TlsFiles | None = None) -> zenoh.Config:
     """Client mode, scouting off. One attempt per endpoint (`timeout_ms` 0): with a longer timeout a
     client keeps retrying the first endpoint alone and never tries the others; we retry ourselves."""
     conf = zenoh.Config()
@@ -42,6 +43,8 @@ def _client_config(endpoints: list[str], open_timeout_s: float) -> zenoh.Config:
     conf.insert_json5("connect/timeout_ms", "0")
     conf.insert_json5("connect/exit_on_failure", "true")
     conf.insert_json5("transport/unicast/open_timeout", str(max(1, int(open_timeout_s * 1000))))
+    if tls is not None:
+        tls_config(conf, tls, listen=False)
     return conf
 
 
@@ -51,8 +54,10 @@ class StatusClient:
     Opening retries every endpoint until `timeout_s`; when none is reachable it raises the same
     TransportError as a query nobody answers (`no_answer`)."""
 
-    def __init__(self, pipeline: str, endpoints: list[str], timeout_s: float = 5.0):
+    def __init__(self, pipeline: str, endpoints: list[str], timeout_s: float = 5.0, tls: TlsFiles | None = None):
         self.pipeline = pipeline
+        self.tls = tls
+        """the monitor's identity, for a pipeline under security:"""
         self.endpoints = list(endpoints)
         self.timeout_s = timeout_s
         self.errors = 0
@@ -63,7 +68,7 @@ class StatusClient:
         deadline = time.monotonic() + self.timeout_s
         while True:
             try:
-                return zenoh.open(_client_config(self.endpoints, max(deadline - time.monotonic(), RETRY_S)))
+                return zenoh.open(_client_config(self.endpoints, max(deadline - time.monotonic(), RETRY_S), self.tls))
             except zenoh.ZError as exc:
                 log.debug("cannot connect to %s: %s", ", ".join(self.endpoints), exc)
             if time.monotonic() + RETRY_S >= deadline:

@@ -6,6 +6,7 @@ import json
 import re
 import socket
 from dataclasses import dataclass, field
+from typing import Any
 
 import zenoh
 
@@ -23,6 +24,36 @@ class SessionSpec:
     host_timeout_s: float = 15.0
     """a link silent this long is closed (Zenoh's transport lease): its hosts are lost"""
     label: str = "local"
+    tls: TlsFiles | None = None
+    """mutual TLS: this host's identity and the CA it checks the others against"""
+    access_control: dict[str, Any] | None = None
+    """Zenoh's `access_control` section (rover.security.acl), enforced on every link of this host"""
+
+
+@dataclass(frozen=True)
+class TlsFiles:
+    """PEM files of one identity: the CA certificate, this side's certificate and private key."""
+
+    ca: str
+    cert: str
+    key: str
+
+
+def tls_config(conf: zenoh.Config, tls: TlsFiles, *, listen: bool) -> None:
+    """Mutual TLS on both sides of every link: certificates checked against the CA, the server's
+    names against the endpoint dialled, links closed when the other side's certificate expires."""
+    settings: dict[str, Any] = {
+        "root_ca_certificate": tls.ca,
+        "connect_certificate": tls.cert,
+        "connect_private_key": tls.key,
+        "enable_mtls": True,  # on a connecting side too: without it Zenoh sends no certificate
+        "verify_name_on_connect": True,
+        "close_link_on_expiration": True,
+    }
+    if listen:
+        settings |= {"listen_certificate": tls.cert, "listen_private_key": tls.key}
+    for key, value in settings.items():
+        conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
 
 
 def config(spec: SessionSpec) -> zenoh.Config:
@@ -44,6 +75,10 @@ def config(spec: SessionSpec) -> zenoh.Config:
     # it before the lease does: Zenoh's default closes it after 5 s, a 4 s outage takes ~6.5 s.
     block_us = max(1, int(spec.host_timeout_s * 1e6))
     conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", str(block_us))
+    if spec.tls is not None:
+        tls_config(conf, spec.tls, listen=True)
+    if spec.access_control is not None:
+        conf.insert_json5("access_control", json.dumps(spec.access_control))
     return conf
 
 
