@@ -34,6 +34,8 @@ from pathlib import Path
 
 import pytest
 
+from rover.security.certs import issue
+
 TESTS = Path(__file__).resolve().parent
 SUBNET = "10.77.0"
 ROOT = Path(__file__).resolve().parent.parent
@@ -341,18 +343,34 @@ def wait_until(
         time.sleep(POLL_S)
 
 
-def pipeline_file(tmp_path: Path, **host_keys: object) -> Path:
+def lab_certs(folder: Path) -> Path:
+    """A CA and certificates for the lab's hosts (each named by its address) and the monitor."""
+    issue(folder, {host: [address] for host, address in ADDRESSES.items()}, monitor=True, label="rover lab")
+    return folder
+
+
+def security_block(certs: Path) -> str:
+    """The `security:` section naming the certificates `lab_certs` wrote."""
+    entries = "".join(f'    {h}: {{cert: "{certs}/{h}.pem", key: "{certs}/{h}.key"}}\n' for h in ADDRESSES)
+    monitor = f'{{cert: "{certs}/monitor.pem", key: "{certs}/monitor.key"}}'
+    return f'security:\n  ca: "{certs}/ca.pem"\n  hosts:\n{entries}  monitor: {monitor}\n'
+
+
+def pipeline_file(tmp_path: Path, *, certs: Path | None = None, **host_keys: object) -> Path:
     """rover/pipeline.yaml with its hosts on the lab's addresses (the NUC listens on 10.77.0.1,
-    the others connect to it) and `host_keys` added to every host."""
+    the others connect to it) and `host_keys` added to every host; with `certs` (from
+    `lab_certs`), under mutual TLS: tls/ endpoints and a security: section."""
     text = (ROOT / "rover" / "pipeline.yaml").read_text()
     extra = "".join(f", {key}: {value}" for key, value in host_keys.items())
-    nuc = f"tcp/{ADDRESSES['nuc']}:${{port}}"
+    nuc = f"{'tls' if certs else 'tcp'}/{ADDRESSES['nuc']}:${{port}}"
     hosts = (
         "hosts:\n"
         f'  nuc:    {{listen: ["{nuc}"]{extra}}}\n'
         f'  base:   {{connect: ["{nuc}"]{extra}}}\n'
         f'  laptop: {{connect: ["{nuc}"]{extra}}}\n'
     )
+    if certs:
+        hosts += security_block(certs)
     lab_text, count = re.subn(r"^hosts:\n(?:[ ]+.*\n)+", hosts, text, count=1, flags=re.M)
     assert count == 1, "rover/pipeline.yaml has no `hosts:` block of indented lines to replace"
     path = tmp_path / "pipeline.yaml"

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 from conftest import popen_rover, read_bag, run_rover
-from netns import ADDRESSES, Lab, pipeline_file, require_root, wait_until
+from netns import ADDRESSES, Lab, lab_certs, pipeline_file, require_root, wait_until
 
 HOSTS = ("laptop", "base", "nuc")
 """Start order: the NUC, where the others connect, last (they retry until it listens)."""
@@ -294,13 +294,17 @@ print(refused)
 # -- the pipeline on three hosts
 
 
-def test_three_hosts_on_a_bridge_give_the_same_bytes_as_one_process(lab, tmp_path, dataset, reference):
+def test_three_hosts_under_mutual_tls_give_the_same_bytes_as_one_process(lab, tmp_path, dataset, reference):
     """The default pipeline's real stages (sweep, decode, AoA with its lateness, preintegration, SLAM
     merging several inputs) split over three namespaces that reach each other only through the
-    bridge write the same results.mcap, trajectories, tags and metrics, byte for byte, as one
-    process (wall-clock timings go to timing.json, not into results.mcap), and every host exits 0."""
+    bridge, under `security:` (mutual TLS, access control generated from the wiring: a rule too
+    narrow would starve a stage), write the same results.mcap, trajectories, tags and metrics,
+    byte for byte, as one process (wall-clock timings go to timing.json, not into results.mcap),
+    and every host exits 0. The plain-TCP split is compared byte for byte by the loss test below."""
     out = tmp_path / "out"
-    results = finish(start(lab, pipeline_file(tmp_path), dataset, out))
+    pipeline = pipeline_file(tmp_path, certs=lab_certs(tmp_path / "certs"))
+    assert "tls/" in pipeline.read_text() and "tcp/" not in pipeline.read_text()
+    results = finish(start(lab, pipeline, dataset, out))
     assert statuses(results) == {"laptop": 0, "base": 0, "nuc": 0}, stderrs(results)
     assert_same_outputs(out, reference)
     topics = {t for t, _s, _d in read_bag(out / "results.mcap")}
