@@ -1,6 +1,7 @@
 """The default pipeline on three hosts against one process: three network namespaces joined by a
-bridge (tests/netns.py), as they are and with 1 % packet loss (nftables) and 50 ms added each way
-(a delaying relay), on the `paper` scenario, seed 1.
+bridge (tests/netns.py), as they are, under `security:` (mutual TLS and the access control
+generated from the wiring), and with 1 % packet loss (nftables) and 50 ms added each way (a
+delaying relay), on the `paper` scenario, seed 1.
 
 Prints the wall-clock time of each run, its real-time factor, and whether the outputs are the same
 bytes as one process's. Needs root (network namespaces); without it, says so and records nothing.
@@ -20,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-from netns import ADDRESSES, Lab, pipeline_file, rover_env  # noqa: E402
+from netns import ADDRESSES, Lab, lab_certs, pipeline_file, rover_env  # noqa: E402
 
 COMPARED = ("results.mcap", "trajectory.tum", "trajectory_live.tum", "tags.csv", "metrics.json")
 PORT, RELAY_PORT = 7447, 7448
@@ -44,14 +45,14 @@ def one_process(dataset: Path, out: Path) -> float:
     return time.monotonic() - started
 
 
-def three_hosts(dataset: Path, out: Path, work: Path, impaired: bool) -> float:
+def three_hosts(dataset: Path, out: Path, work: Path, impaired: bool, tls: bool = False) -> float:
     with Lab() as lab:
         ports = {h: PORT for h in HOSTS}
         if impaired:
             lab.relay("nuc", RELAY_PORT, f"{ADDRESSES['nuc']}:{PORT}", DELAY_S)
             lab.loss(LOSS_PERCENT)
             ports.update(base=RELAY_PORT, laptop=RELAY_PORT)
-        pipeline = pipeline_file(work)
+        pipeline = pipeline_file(work, certs=lab_certs(work / f"certs-{out.name}") if tls else None)
         started = time.monotonic()
         procs = {
             h: lab.popen(
@@ -99,9 +100,14 @@ def main() -> int:
         figures: dict[str, dict[str, float | bool]] = {}
         one_s = one_process(dataset, work / "one")
         figures["one_process"] = {"wall_s": one_s, "real_time_x": duration_s / one_s}
-        for name, impaired in (("three_hosts", False), ("three_hosts_loss_delay", True)):
+        runs = (
+            ("three_hosts", False, False),
+            ("three_hosts_tls", False, True),
+            ("three_hosts_loss_delay", True, False),
+        )
+        for name, impaired, tls in runs:
             out = work / name
-            wall = three_hosts(dataset, out, work, impaired)
+            wall = three_hosts(dataset, out, work, impaired, tls)
             figures[name] = {
                 "wall_s": wall,
                 "real_time_x": duration_s / wall,
@@ -114,7 +120,8 @@ def main() -> int:
         ratio = f"{f['vs_one_process']:.2f}" if "vs_one_process" in f else "-"
         ident = str(f.get("identical_outputs", "-"))
         print(f"{name:<26}{f['wall_s']:>8.1f}{f['real_time_x']:>13.1f}{ratio:>8}  {ident}")
-    print(f"(loss {LOSS_PERCENT} % of every host's outgoing packets, {DELAY_S * 1000:.0f} ms each way NUC<->others)")
+    print(f"(loss {LOSS_PERCENT} % of every host's outgoing packets, {DELAY_S * 1000:.0f} ms each way NUC<->others;")
+    print(" tls: mutual TLS with the access control generated from the wiring)")
     if args.json:
         Path(args.json).write_text(json.dumps({"duration_s": duration_s, **figures}, indent=2) + "\n")
     return 0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -92,8 +93,14 @@ def _check_one(
             f"{head}, excitation channel {rig.excitation_channel} "
             f"(at most {here} tags at once{advice}), {len(rig.tags)} tags ({tags})"
         ), warnings
+    from rover.pipeline.spec import MONITOR
+
     spec, problems = parse(doc, overrides)
     summary = check(spec, BUILTINS, problems).summary()
+    secured = spec.security is not None
+    if host is not None and host not in spec.hosts and not (secured and host == MONITOR):
+        also = f" (or {MONITOR}, under security:)" if secured else ""
+        raise BadInput(f"{file}: --host {host!r} is not declared under hosts: ({', '.join(spec.hosts)}){also}")
     if spec.security is None:
         if security:
             summary += "\n(no security: section: every host accepts any connection; see docs/security.md)"
@@ -101,11 +108,9 @@ def _check_one(
     from rover.security.acl import describe
     from rover.security.check import check_security
 
-    if host is not None and host not in spec.hosts:
-        raise BadInput(f"{file}: --host {host!r} is not declared under hosts: ({', '.join(spec.hosts)})")
-    found, warnings = check_security(
-        spec, None if host is None else [host], monitor=host is None and spec.security.monitor is not None
-    )
+    hosts = None if host is None else [h for h in [host] if h != MONITOR]
+    monitor = host == MONITOR or (host is None and spec.security.monitor is not None)
+    found, warnings = check_security(spec, hosts, monitor=monitor)
     if found:
         raise SpecError(found)
     summary += f"; mutual TLS, certificates of {host or 'every host'} valid"
@@ -249,15 +254,15 @@ def cmd_certs(args: argparse.Namespace) -> int:
     for host in hosts:
         derived: list[str] = []
         if spec is not None and host in spec.hosts:
-            derived = [address for address, _why in served_addresses(spec, host)]
+            derived = list(dict.fromkeys(address for address, _why in served_addresses(spec, host)))
             if listens_on_wildcard(spec, host):
                 derived += ["localhost", "127.0.0.1"]  # where `rover status` on that machine connects
         names[host] = given.get(host, derived)
-    label = f"rover {spec.name}" if spec else "rover"
+    label = f"rover pipeline {spec.name}" if spec else "rover"
     issued = issue(args.output, names, monitor=args.monitor, label=label, days=args.days, force=args.force)
     print(f"{issued.ca}: CA certificate ({label} CA; its private key was not kept: a new host means a new set)")
     for ident, (cert, key) in issued.identities.items():
-        shown = ", ".join([ident] + names.get(ident, []))
+        shown = ", ".join(dict.fromkeys([ident] + names.get(ident, [])))
         print(f"{cert}, {key}: {ident} (names: {shown})")
     out = args.output
     print("\nsecurity:  # give each host only the CA, its own certificate and its own key")
@@ -664,7 +669,9 @@ def parser() -> argparse.ArgumentParser:
 
     p = command("check", help="validate pipeline and setup files; report every problem as FILE:LINE:COL")
     p.add_argument("files", nargs="+", metavar="FILE")
-    p.add_argument("--host", help="under security:, check only this host's certificate and key (and the CA)")
+    p.add_argument(
+        "--host", help="under security:, check only this host's (or the monitor's) certificate and key, and the CA"
+    )
     p.add_argument("--security", action="store_true", help="also print the access rules generated from the wiring")
     _add_set(p)
     p.set_defaults(func=cmd_check)
@@ -765,6 +772,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="rover: %(levelname)s: %(message)s")
+    if os.environ.get("RUST_LOG"):  # Zenoh's own log, e.g. its access-control decisions (docs/security.md)
+        import zenoh
+
+        zenoh.init_log_from_env_or("error")
     previous = (
         {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
         if threading.current_thread() is threading.main_thread()

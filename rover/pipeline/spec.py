@@ -257,7 +257,6 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
         hosts[hname] = host
 
     security = _security(top, hosts, variables, col) if "security" in top else None
-
     operators: dict[str, OperatorSpec] = {}
     raw_ops = col.mapping(top.get("operators"), ("operators",), "operators")
     if "operators" not in top:
@@ -358,7 +357,13 @@ def _security(
     for host in hosts.values():
         for kind in ("listen", "connect"):
             for i, ep in enumerate(getattr(host, kind)):
-                if not ep.startswith("tls/"):
+                if ep.startswith("tls/["):
+                    col.add(
+                        ("hosts", host.name, kind, i),
+                        f"{ep}: Zenoh's TLS takes no IPv6 literal (it reads it as a DNS name): "
+                        "use a DNS name that resolves to it, or an IPv4 address",
+                    )
+                elif not ep.startswith("tls/"):
                     verb = "listens on" if kind == "listen" else "connects to"
                     col.add(
                         ("hosts", host.name, kind, i),

@@ -324,6 +324,18 @@ def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -
                     f"{op.host!r}{did_you_mean(op.host, hosts)}{declared}",
                 )
             )
+    if spec.security is None and "security" not in (doc.data or {}):
+        for host in hosts.values():  # without certificates Zenoh cannot open tls/ or quic/ links
+            for kind in ("listen", "connect"):
+                for i, ep in enumerate(getattr(host, kind)):
+                    if ep.startswith(("tls/", "quic/")):
+                        problems.append(
+                            doc.diag(
+                                ("hosts", host.name, kind, i),
+                                f"{ep}: {ep.partition('/')[0]}/ needs certificates: add a security: section "
+                                "(rover certs makes them) and use tls/ endpoints",
+                            )
+                        )
     if len(hosts) < 2:
         return
     for a in hosts.values():

@@ -38,6 +38,8 @@ from rover.transport import codec, keys
 from rover.transport.session import SessionSpec, TlsFiles, open_session
 
 log = logging.getLogger("rover")
+TLS_HINT = " Does it have the same ca.pem? `rover check PIPELINE --host H` on each machine checks its certificate)"
+"""A TLS handshake refused (another CA, a certificate not naming the address) looks like a host that never comes."""
 
 WATERMARK_INTERVAL_NS = 100_000_000
 """Event time between watermarks on an output that has nothing else to say."""
@@ -748,7 +750,8 @@ class Runner:
         try:
             status = session.declare_queryable(status_key(self.pipeline.name, self.host), self._answer_status)
             watch.declare("ready")
-            hint = f" ({self.host} connects to {', '.join(spec.connect)}: is the host listening there running?)"
+            hint = f" ({self.host} connects to {', '.join(spec.connect)}: is the host listening there running?"
+            hint = hint + ")" if self.pipeline.spec.security is None else hint + TLS_HINT
             if not watch.wait_ready(wanted, self.stop, spec.wait_timeout_s, hint if spec.connect else ""):
                 return
             self.state = "running"

@@ -4,12 +4,13 @@ Zenoh checks every message that crosses a link against the rules of the router o
 and identifies the other side by the common name of its TLS certificate. So the rules are per
 link: on host X, what neighbour Y may send in (ingress) and what X sends out to Y (egress). A
 flow (a key from the host that produces it to the host that reads it) may cross the link Y->X
-when some path of the pipeline's link graph from producer to consumer takes it: a hub relays for
-the hosts behind it, nobody else relays anything. What a host may send is therefore its own
-operators' outputs that others read, its presence tokens and status, and what it relays; what
-it may ask for (declare a subscriber on) is what its operators read and what it relays. The
-read-only `monitor` identity may query the hosts' status and nothing else. Anything not allowed
-is denied (`default_permission: deny`), including any identity the pipeline does not name.
+when some path of the pipeline's link graph from producer to consumer takes it: in a star only the
+hub relays (for the hosts behind it); in a mesh, any host on a path between two others may.
+What a host may send is therefore its own operators' outputs that others read, its presence
+tokens and status, and what it relays; what it may ask for (declare a subscriber on) is what its
+operators read and what it relays. The read-only `monitor` identity may query the hosts'
+status and nothing else. Anything not allowed is denied (`default_permission: deny`),
+including any identity the pipeline does not name.
 """
 
 from __future__ import annotations

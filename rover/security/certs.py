@@ -181,7 +181,7 @@ def issue(
     files = [out / "ca.pem"] + [out / f"{n}.{ext}" for n in idents for ext in ("pem", "key")]
     existing = [str(f) for f in files if f.exists()]
     if existing and not force:
-        raise BadInput(f"{existing[0]}: already exists (pass --force to replace the whole set)")
+        raise BadInput(f"{existing[0]}: already exists (pass --force to replace it and the other files of this set)")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -15,6 +15,9 @@ from rover.pipeline.spec import MONITOR, Identity, PipelineSpec
 from rover.pipeline.validation import served_addresses
 from rover.security.certs import CertInfo, key_matches, read_cert, read_private_key, signed_by
 
+EXPIRY_WARNING = dt.timedelta(days=30)
+"""A certificate this close to its end is reported by every check: time to issue new ones."""
+
 
 def _when(moment: dt.datetime) -> str:
     return moment.strftime("%Y-%m-%d %H:%M UTC")
@@ -26,6 +29,12 @@ def _validity(info: CertInfo, what: str, now: dt.datetime) -> str | None:
     if now < info.not_before:
         return f"{info.path}: {what} is not valid before {_when(info.not_before)} (is this clock right?)"
     return None
+
+
+def _expires_soon(info: CertInfo, what: str, now: dt.datetime) -> str | None:
+    if info.not_after - now >= EXPIRY_WARNING:
+        return None
+    return f"{info.path}: warning: {what} expires in {(info.not_after - now).days} days ({_when(info.not_after)})"
 
 
 def check_security(
@@ -51,6 +60,8 @@ def check_security(
         ca = None
     if ca is not None and (problem := _validity(ca, "the CA certificate", now)):
         problems.append(doc.diag(("security", "ca"), problem))
+    elif ca is not None and (soon := _expires_soon(ca, "the CA certificate", now)):
+        warnings.append(soon)
 
     def identity(name: str, ident: Identity, path: tuple[str, ...]) -> None:
         what = f"the certificate of {'the monitor' if name == MONITOR else f'host {name}'}"
@@ -77,16 +88,22 @@ def check_security(
             )
         if problem := _validity(info, what, now):
             found.append(problem)
+        elif soon := _expires_soon(info, what, now):
+            warnings.append(soon)
         if ca is not None and not signed_by(info, ca):
             found.append(f"{info.path}: {what} is not signed by the CA in {ca.path}")
         if key is not None and not key_matches(info, key):
-            found.append(f"{ident.key}: this private key does not belong to {info.path}")
+            problems.append(doc.diag(path + ("key",), f"{ident.key}: this private key does not belong to {info.path}"))
         if name != MONITOR:
+            uncovered: dict[str, list[str]] = {}
             for address, why in served_addresses(spec, name):
                 if not info.covers(address):
-                    found.append(
-                        f"{info.path}: {what} does not cover {address} ({why}); its names: {info.described_names()}"
-                    )
+                    uncovered.setdefault(address, []).append(why)
+            for address, whys in uncovered.items():
+                found.append(
+                    f"{info.path}: {what} does not cover {address} ({'; '.join(whys)}); "
+                    f"its names: {info.described_names()}"
+                )
         problems.extend(doc.diag(path + ("cert",), text) for text in found)
 
     for name in spec.hosts if hosts is None else hosts:
