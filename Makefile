@@ -35,7 +35,7 @@ netns-tools:
 		echo "make: could not install nftables; tests/test_hosts.py will say what is missing"
 
 test: lint netns-tools
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=15
 
 bench: $(STAMP)
 	$(BIN)/python bench/run_all.py

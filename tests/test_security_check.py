@@ -435,3 +435,24 @@ def test_cli_status_under_security_needs_the_monitor_identity(tmp_path):
     [line] = proc.stderr.splitlines()
     assert line.startswith(f"{pipeline}:") and "no monitor: identity" in line
     assert "rover certs --monitor" in line
+
+
+def test_cli_run_refuses_to_start_a_host_with_an_expired_certificate(tmp_path):
+    """`rover run --host nuc` with nuc's certificate expired exits 2 with that one problem before
+    it opens a session (no output folder); with a valid set, base's missing key stops
+    `rover run --host base` the same way."""
+    certs = make_set(tmp_path, now=real_now() - dt.timedelta(days=3), days=1)
+    pipeline = write_pipeline(tmp_path)
+    out = tmp_path / "out"
+    proc = run_rover("run", str(pipeline), "--host", "nuc", "--set", f"out={out}", timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    [match] = [PROBLEM_LINE.match(line) for line in proc.stderr.splitlines()]
+    assert match is not None, proc.stderr
+    assert match["path"] == f"{certs}/nuc.pem" and "expired on" in match["text"]
+    assert not out.exists()
+    make_set(tmp_path, force=True)  # a valid set, but for base's key
+    (certs / "base.key").unlink()
+    proc = run_rover("run", str(pipeline), "--host", "base", "--set", f"out={out}", timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    found = [PROBLEM_LINE.match(line) for line in proc.stderr.splitlines()]
+    assert [(m["path"], m["text"]) for m in found if m] == [(f"{certs}/base.key", "no such file")], proc.stderr
