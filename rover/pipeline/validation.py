@@ -238,7 +238,8 @@ def _is_wildcard(host: str) -> bool:
     return host in ("0.0.0.0", "::", "")
 
 
-def _is_ip(host: str) -> bool:
+def is_ip(host: str) -> bool:
+    """Whether `host` is an IP address (else a DNS name)."""
     try:
         ipaddress.ip_address(host)
         return True
@@ -252,7 +253,7 @@ def _reaches(connect: str, listen: str) -> bool:
     lp, lh, lport = _endpoint_parts(listen)
     if cp != lp or cport != lport:
         return False
-    return ch == lh or _is_wildcard(lh) or not _is_ip(ch) or not _is_ip(lh)
+    return ch == lh or _is_wildcard(lh) or not is_ip(ch) or not is_ip(lh)
 
 
 def _listeners(spec: PipelineSpec, host: str, endpoint: str) -> list[str]:

@@ -23,6 +23,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from rover.errors import BadInput
+from rover.pipeline.validation import is_ip
 
 MONITOR = "monitor"
 """The identity of `rover status` and viewers: reads host status, nothing else."""
@@ -51,19 +52,11 @@ class CertInfo:
         try:
             ip = ipaddress.ip_address(address.strip("[]"))
         except ValueError:
-            return any(_dns_match(name, address) for name in self.names if not _is_ip(name))
-        return any(_is_ip(name) and ipaddress.ip_address(name) == ip for name in self.names)
+            return any(_dns_match(name, address) for name in self.names if not is_ip(name))
+        return any(is_ip(name) and ipaddress.ip_address(name) == ip for name in self.names)
 
     def described_names(self) -> str:
-        return ", ".join(f"{'IP' if _is_ip(n) else 'DNS'}:{n}" for n in self.names) or "none"
-
-
-def _is_ip(text: str) -> bool:
-    try:
-        ipaddress.ip_address(text)
-        return True
-    except ValueError:
-        return False
+        return ", ".join(f"{'IP' if is_ip(n) else 'DNS'}:{n}" for n in self.names) or "none"
 
 
 def _dns_match(pattern: str, name: str) -> bool:
@@ -156,7 +149,7 @@ def _name(common_name: str) -> x509.Name:
 def _alt_names(names: Iterable[str]) -> list[x509.GeneralName]:
     out: list[x509.GeneralName] = []
     for name in dict.fromkeys(names):
-        if _is_ip(name.strip("[]")):
+        if is_ip(name.strip("[]")):
             out.append(x509.IPAddress(ipaddress.ip_address(name.strip("[]"))))
         else:
             out.append(x509.DNSName(name))
