@@ -325,7 +325,7 @@ def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -
                     f"{op.host!r}{did_you_mean(op.host, hosts)}{declared}",
                 )
             )
-    if spec.security is None and "security" not in (doc.data or {}):
+    if spec.security is None and not (isinstance(doc.data, dict) and "security" in doc.data):
         for host in hosts.values():  # without certificates Zenoh cannot open tls/ or quic/ links
             for kind in ("listen", "connect"):
                 for i, ep in enumerate(getattr(host, kind)):
