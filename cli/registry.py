@@ -11,6 +11,8 @@ BUILTINS: dict[str, str] = {
     "slam": "rover.operators.slam.operator:Slam",
     "channel_hop": "rover.drivers.channel_hop:ChannelHop",
     "csi_netlink": "rover.drivers.csi_netlink:CsiNetlink",
+    "create2": "rover.drivers.create2:Create2",
+    "microstrain_imu": "rover.drivers.microstrain_imu:MicrostrainImu",
     "csi_file": "rover.drivers.csi_file:CsiFile",
     "rig_source": "rover.drivers.rig_source:RigSource",
     "recorder": "rover.drivers.recorder:Recorder",
