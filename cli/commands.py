@@ -247,8 +247,7 @@ def cmd_certs(args: argparse.Namespace) -> int:
     for host in hosts:
         if not NAME_RE.match(host) or host == MONITOR:
             raise BadInput(f"--hosts: {host!r} is not a host name (letters, digits, _ or -; {MONITOR!r} is reserved)")
-    if not 1 <= args.days <= 3650:
-        raise BadInput(f"--days: between 1 and 3650, got {args.days}")
+    hosts = list(dict.fromkeys(hosts))
     given = _names(args, hosts)
     names: dict[str, list[str]] = {}
     for host in hosts:
@@ -686,7 +685,9 @@ def parser() -> argparse.ArgumentParser:
         metavar="HOST=DNS_OR_IP,...",
         help="the names a host is reached at (replace those taken from the pipeline); repeat HOST= for several",
     )
-    p.add_argument("--days", type=int, default=365, help="lifetime of the host certificates (default 365)")
+    p.add_argument(
+        "--days", type=int, default=365, help="lifetime of the host certificates (default 365, at most 1825)"
+    )
     p.add_argument("-o", "--output", required=True, help="the folder to write into")
     p.add_argument("--force", action="store_true", help="replace existing certificates in the folder")
     _add_set(p)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import datetime as dt
 import os
+import re
 import shutil
 import stat
 import subprocess
@@ -13,9 +14,9 @@ import pytest
 import yaml
 from conftest import run_rover
 from cryptography import x509
-from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import ExtendedKeyUsageOID
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from rover.errors import BadInput
 from rover.security.certs import (
@@ -93,12 +94,15 @@ def test_covers_matches_ips_exactly_and_dns_names_case_insensitively(issued):
 
 
 def test_wildcard_names_cover_exactly_one_label(tmp_path):
-    """`*.lab` covers nuc.lab (any case) but neither lab itself, a.b.lab, .lab nor an IP."""
-    issued = issue(tmp_path, {"nuc": ["*.lab"]})
+    """`*.robot.lab` covers nuc.robot.lab (any case) but neither robot.lab itself, a.b.robot.lab,
+    .robot.lab nor an IP; `*.lab` (a wildcard over two labels, which webpki refuses) covers nothing."""
+    issued = issue(tmp_path, {"nuc": ["*.robot.lab"], "base": ["*.lab"]})
     nuc = read_cert(issued.identities["nuc"][0])
-    assert nuc.covers("nuc.lab") and nuc.covers("Other.LAB")
-    for address in ("lab", "a.b.lab", ".lab", "nuc.lab.org", "nuc.lan", "10.0.0.1"):
+    assert nuc.covers("nuc.robot.lab") and nuc.covers("Other.ROBOT.lab")
+    for address in ("robot.lab", "a.b.robot.lab", ".robot.lab", "nuc.robot.lab.org", "nuc.robot.lan", "10.0.0.1"):
         assert not nuc.covers(address), address
+    base = read_cert(issued.identities["base"][0])
+    assert not base.covers("nuc.lab") and not base.covers("lab")
 
 
 def test_each_certificate_is_signed_by_its_ca_and_by_no_other(issued, tmp_path):
@@ -233,8 +237,62 @@ def test_read_cert_and_key_name_the_file_for_missing_and_non_pem_files(tmp_path,
         read_cert(key)
     with pytest.raises(BadInput, match=rf"^{cert}: not a PEM private key$"):
         read_private_key(cert)
-    with pytest.raises(BadInput, match=rf"^{tmp_path}: cannot read"):
+    with pytest.raises(BadInput, match=rf"^{tmp_path}: not a regular file$"):
         read_cert(tmp_path)
+    fifo = tmp_path / "fifo.pem"
+    os.mkfifo(fifo)
+    with pytest.raises(BadInput, match=rf"^{fifo}: not a regular file$"):  # never waits for a writer
+        read_private_key(fifo)
+
+
+def test_a_file_of_several_certificates_is_refused(tmp_path, issued):
+    """TLS trusts every certificate of a CA file while a check would look at the first only: a
+    bundle (the old CA appended during a rotation) is one BadInput saying how many it holds."""
+    bundle = tmp_path / "bundle.pem"
+    other = issue(tmp_path / "old", {"nuc": []})
+    bundle.write_bytes(issued.ca.read_bytes() + other.ca.read_bytes())
+    with pytest.raises(BadInput, match=rf"^{bundle}: holds 2 certificates"):
+        read_cert(bundle)
+
+
+def test_an_ip_written_as_a_dns_name_covers_nothing(tmp_path):
+    """TLS matches an IP only against IP names: a certificate carrying 10.0.0.5 as a DNS name (made
+    here with cryptography directly) does not cover 10.0.0.5."""
+    ca = issue(tmp_path / "ca", {"nuc": []})
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "nuc")])
+    now = dt.datetime.now(dt.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(1)
+        .not_valid_before(now)
+        .not_valid_after(now + dt.timedelta(days=1))
+        .add_extension(x509.SubjectAlternativeName([x509.DNSName("10.0.0.5")]), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    path = tmp_path / "dns-ip.pem"
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    info = read_cert(path)
+    assert info.dns_names == ("10.0.0.5",) and not info.covers("10.0.0.5")
+    assert ca.ca.exists()
+
+
+def test_names_and_lifetimes_that_no_certificate_can_carry_are_refused_before_writing(tmp_path):
+    """A non-ASCII or malformed name, a host name over 64 characters, or host certificates outliving
+    the CA: one BadInput each, and nothing written."""
+    for names, days, message in (
+        ({"nuc": ["nüc.lab"]}, 365, "nuc=nüc.lab: not an IP address or an ASCII DNS name"),
+        ({"nuc": ["bad_name.lab"]}, 365, "nuc=bad_name.lab: not an IP address"),
+        ({"n" * 65: []}, 365, "is longer than a certificate name may be"),
+        ({"nuc": []}, 1826, "lasts 1 to 1825 days"),
+    ):
+        out = tmp_path / "out"
+        with pytest.raises(BadInput, match=re.escape(message)):
+            issue(out, names, days=days)
+        assert not out.exists()
 
 
 def test_an_encrypted_key_is_refused_with_its_file_named(tmp_path):

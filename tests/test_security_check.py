@@ -8,6 +8,7 @@ import re
 import shutil
 from pathlib import Path
 
+import yaml
 from conftest import run_rover
 
 from rover.pipeline.spec import PipelineSpec, parse, read_document
@@ -153,12 +154,13 @@ def test_a_certificate_close_to_its_end_is_a_warning(tmp_path):
 
 
 def test_a_ca_close_to_its_end_is_a_warning(tmp_path):
-    """The CA 10 days from its end (the host certificates outlive it): a warning naming ca.pem."""
-    certs = make_set(tmp_path, days=3650, now=real_now() - dt.timedelta(days=1815))
+    """The CA 10 days from its end (nuc's certificate, as long-lived as allowed, too): a warning
+    naming ca.pem, and one naming nuc.pem."""
+    certs = make_set(tmp_path, days=1825, now=real_now() - dt.timedelta(days=1815))
     spec = load(write_pipeline(tmp_path))
     problems, warnings = check_security(spec, ["nuc"])
     assert problems == []
-    assert [w.split(": ")[0] for w in warnings] == [f"{certs}/ca.pem"]
+    assert [w.split(": ")[0] for w in warnings] == [f"{certs}/ca.pem", f"{certs}/nuc.pem"]
 
 
 def test_a_certificate_not_yet_valid_blames_the_clock(tmp_path):
@@ -456,3 +458,23 @@ def test_cli_run_refuses_to_start_a_host_with_an_expired_certificate(tmp_path):
     assert proc.returncode == 2, proc.stderr
     found = [PROBLEM_LINE.match(line) for line in proc.stderr.splitlines()]
     assert [(m["path"], m["text"]) for m in found if m] == [(f"{certs}/base.key", "no such file")], proc.stderr
+
+
+def test_the_ca_certificate_in_a_hosts_place_is_refused_as_a_ca(tmp_path):
+    """ca.pem copied over nuc.pem (webpki refuses a CA certificate as a leaf): among nuc's problems,
+    one says it is a CA certificate."""
+    certs = make_set(tmp_path)
+    shutil.copy(certs / "ca.pem", certs / "nuc.pem")
+    problems, _ = check_security(load(write_pipeline(tmp_path)), ["nuc"])
+    assert any(
+        p.message == f"{certs}/nuc.pem: the certificate of host nuc is a CA certificate, not a host's" for p in problems
+    ), problems
+
+
+def test_cli_certs_issues_a_host_named_twice_once(tmp_path):
+    """`--hosts nuc,base,nuc`: two identities, and the printed security: block loads as YAML."""
+    out = tmp_path / "pki"
+    proc = run_rover("certs", "--hosts", "nuc,base,nuc", "-o", str(out))
+    assert proc.returncode == 0, proc.stderr
+    block = proc.stdout[proc.stdout.index("security:") :]
+    assert sorted(yaml.safe_load(block)["security"]["hosts"]) == ["base", "nuc"]

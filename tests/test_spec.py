@@ -189,3 +189,36 @@ def test_security_refuses_an_ipv6_literal_in_a_tls_endpoint():
     _spec, problems = parse(load(text, "s.yaml"))
     assert [(p.line, p.message.split(":")[0]) for p in problems] == [(5, "tls/[fd00")]
     assert "IPv6 literal" in problems[0].message and "IPv4" in problems[0].message
+
+
+def test_security_refuses_endpoint_options_that_would_override_tls():
+    """`#enable_mtls=false` (or any #option: Zenoh lets them override the TLS settings) under
+    security: is a problem at that endpoint; without security: it is left alone."""
+    text = secure('connect: ["tls/10.0.0.1:7447"]', 'connect: ["tls/10.0.0.1:7447#enable_mtls=false"]')
+    _spec, problems = parse(load(text, "s.yaml"))
+    assert [(p.line, "no #options" in p.message) for p in problems] == [(5, True)]
+    plain = text.split("security:")[0].replace("tls/", "tcp/") + "operators: {}\n"
+    assert parse(load(plain, "s.yaml"))[1] == []
+
+
+def test_under_security_a_connect_endpoint_must_reach_one_host():
+    """Base and the NUC both listen on a wildcard at port 7447 and the laptop dials an address:
+    the link (so the access rules) would be a guess; under security: that is a problem at the
+    laptop's endpoint naming both hosts; without security: the check accepts it, as before."""
+    text = (
+        SECURE.replace('nuc: {listen: ["tls/10.0.0.1:7447"]}', 'nuc: {listen: ["tls/0.0.0.0:7447"]}')
+        .replace(
+            'base: {connect: ["tls/10.0.0.1:7447"]}',
+            'base: {listen: ["tls/0.0.0.0:7447"]}\n  laptop: {connect: ["tls/10.0.0.1:7447"]}',
+        )
+        .replace("  monitor:", '    laptop: {cert: "${certs}/laptop.pem", key: "${certs}/laptop.key"}\n  monitor:')
+    )
+    spec, problems = parse(load(text, "s.yaml"))
+    assert problems == []
+    with pytest.raises(SpecError) as caught:
+        check(spec, BUILTINS, problems)
+    [problem] = caught.value.diagnostics
+    assert problem.line == 6 and "could be nuc or base" in problem.message, problem
+    plain = text.split("security:")[0].replace("tls/", "tcp/") + "operators: {}\n"
+    spec, problems = parse(load(plain, "s.yaml"))
+    check(spec, BUILTINS, problems)

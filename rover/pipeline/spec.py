@@ -357,7 +357,12 @@ def _security(
     for host in hosts.values():
         for kind in ("listen", "connect"):
             for i, ep in enumerate(getattr(host, kind)):
-                if ep.startswith("tls/["):
+                if "#" in ep:
+                    col.add(
+                        ("hosts", host.name, kind, i),
+                        f"{ep}: under security: an endpoint takes no #options (they would override the TLS settings)",
+                    )
+                elif ep.startswith("tls/["):
                     col.add(
                         ("hosts", host.name, kind, i),
                         f"{ep}: Zenoh's TLS takes no IPv6 literal (it reads it as a DNS name): "

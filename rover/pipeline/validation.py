@@ -350,11 +350,21 @@ def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -
                 )
             )
         for i, ep in enumerate(a.connect):
-            if not _listeners(spec, a.name, ep):
+            reached = _listeners(spec, a.name, ep)
+            if not reached:
                 problems.append(
                     doc.diag(
                         ("hosts", a.name, "connect", i),
                         f"host {a.name!r} connects to {ep}, where no declared host listens",
+                    )
+                )
+            elif len(reached) > 1 and spec.security is not None:
+                problems.append(
+                    doc.diag(
+                        ("hosts", a.name, "connect", i),
+                        f"host {a.name!r} connects to {ep}, which could be {' or '.join(reached)} (names are not "
+                        "resolved, a wildcard listens everywhere): under security: the access rules follow the "
+                        "links, so connect to the exact address one host listens on, or give each host its own port",
                     )
                 )
     links = host_links(spec)

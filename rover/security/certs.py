@@ -12,12 +12,14 @@ from __future__ import annotations
 import datetime as dt
 import ipaddress
 import os
+import re
+import stat
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
-from cryptography.exceptions import InvalidSignature
+from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -31,6 +33,12 @@ CA_DAYS = 1825
 """The CA's lifetime: five years; a compromise is answered with a new CA anyway."""
 HOST_DAYS = 365
 """A host certificate's lifetime: a year, so a forgotten copy stops working on its own."""
+MAX_COMMON_NAME = 64
+"""X.509's upper bound on a common name (characters)."""
+DNS_NAME_RE = re.compile(
+    r"^(?=.{1,253}$)(\*\.)?[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$"
+)
+"""A DNS name a certificate can carry (ASCII letters, digits and hyphens per label; a leading `*.`)."""
 BACKDATE = dt.timedelta(minutes=5)
 """Certificates are valid from a little before now: clocks of the hosts differ by seconds to minutes."""
 
@@ -41,27 +49,40 @@ class CertInfo:
 
     path: str
     common_name: str
-    names: tuple[str, ...]
-    """subject alternative names: DNS names and IP addresses, as text"""
+    dns_names: tuple[str, ...]
+    ip_names: tuple[str, ...]
+    """subject alternative names of each kind: TLS matches an IP only against IP names"""
     not_before: dt.datetime
     not_after: dt.datetime
     cert: x509.Certificate
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.dns_names + self.ip_names
 
     def covers(self, address: str) -> bool:
         """Whether `address` (an IP or a DNS name) is one of the certificate's names, as TLS checks it."""
         try:
             ip = ipaddress.ip_address(address.strip("[]"))
         except ValueError:
-            return any(_dns_match(name, address) for name in self.names if not is_ip(name))
-        return any(is_ip(name) and ipaddress.ip_address(name) == ip for name in self.names)
+            return any(_dns_match(name, address) for name in self.dns_names)
+        return any(ipaddress.ip_address(name) == ip for name in self.ip_names)
 
     def described_names(self) -> str:
-        return ", ".join(f"{'IP' if is_ip(n) else 'DNS'}:{n}" for n in self.names) or "none"
+        shown = [f"DNS:{n}" for n in self.dns_names] + [f"IP:{n}" for n in self.ip_names]
+        return ", ".join(shown) or "none"
 
 
 def _dns_match(pattern: str, name: str) -> bool:
-    pattern, name = pattern.lower().rstrip("."), name.lower().rstrip(".")
+    """As webpki matches: case-insensitive, the dialled name may be absolute (`nuc.lab.`) but the
+    certificate's may not, a wildcard only as the whole first label of a name of at least three
+    labels, standing for exactly one label."""
+    if pattern.endswith("."):
+        return False
+    pattern, name = pattern.lower(), name.lower().removesuffix(".")
     if pattern.startswith("*."):
+        if pattern.count(".") < 2:
+            return False
         head, _, rest = name.partition(".")
         return bool(head) and rest == pattern[2:]
     return pattern == name
@@ -70,26 +91,33 @@ def _dns_match(pattern: str, name: str) -> bool:
 def read_cert(path: str | Path) -> CertInfo:
     """A PEM certificate's identity, names and validity; BadInput naming the file when it is not one."""
     data = _read(path)
+    count = data.count(b"-----BEGIN CERTIFICATE-----")
+    if count > 1:
+        raise BadInput(
+            f"{path}: holds {count} certificates; TLS would trust every one: give one certificate (one CA) per file"
+        )
     try:
         cert = x509.load_pem_x509_certificate(data)
+        cns = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+        try:
+            sans = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+            dns = tuple(sans.get_values_for_type(x509.DNSName))
+            ips = tuple(str(ip) for ip in sans.get_values_for_type(x509.IPAddress))
+        except x509.ExtensionNotFound:
+            dns, ips = (), ()
+        return CertInfo(
+            str(path),
+            str(cns[0].value) if cns else "",
+            dns,
+            ips,
+            cert.not_valid_before_utc,
+            cert.not_valid_after_utc,
+            cert,
+        )
     except ValueError:
         raise BadInput(f"{path}: not a PEM certificate") from None
-    cns = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
-    try:
-        sans = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-        names = tuple(sans.get_values_for_type(x509.DNSName)) + tuple(
-            str(ip) for ip in sans.get_values_for_type(x509.IPAddress)
-        )
-    except x509.ExtensionNotFound:
-        names = ()
-    return CertInfo(
-        str(path),
-        str(cns[0].value) if cns else "",
-        names,
-        cert.not_valid_before_utc,
-        cert.not_valid_after_utc,
-        cert,
-    )
+    except UnsupportedAlgorithm as exc:
+        raise BadInput(f"{path}: a certificate of an algorithm Rover cannot read ({exc})") from None
 
 
 def read_private_key(path: str | Path) -> ec.EllipticCurvePrivateKey | object:
@@ -101,10 +129,15 @@ def read_private_key(path: str | Path) -> ec.EllipticCurvePrivateKey | object:
         raise BadInput(f"{path}: the private key is encrypted; Rover needs it unencrypted (mode 0600)") from None
     except ValueError:
         raise BadInput(f"{path}: not a PEM private key") from None
+    except UnsupportedAlgorithm as exc:
+        raise BadInput(f"{path}: a private key of an algorithm Rover cannot read ({exc})") from None
 
 
 def _read(path: str | Path) -> bytes:
+    """At most 1 MiB of a regular file (not a FIFO, device or folder, which would hang or mislead)."""
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise BadInput(f"{path}: not a regular file")
         with open(path, "rb") as stream:
             return stream.read(1 << 20)
     except FileNotFoundError:
@@ -168,7 +201,15 @@ def issue(
 ) -> Issued:
     """Write a new CA certificate and one certificate and key per host of `names` (host -> the DNS
     names and IPs it is reached at) into `out_dir`, plus the monitor's when asked. Nothing is
-    written when a file would be replaced without `force`."""
+    written when a file would be replaced without `force`, or when a name or lifetime is invalid."""
+    for ident, given in names.items():
+        if len(ident) > MAX_COMMON_NAME:
+            raise BadInput(f"host name {ident!r} is longer than a certificate name may be ({MAX_COMMON_NAME})")
+        for name in given:
+            if not (is_ip(name.strip("[]")) or DNS_NAME_RE.match(name)):
+                raise BadInput(f"{ident}={name}: not an IP address or an ASCII DNS name (letters, digits, - and .)")
+    if not 1 <= days <= CA_DAYS:
+        raise BadInput(f"a host certificate lasts 1 to {CA_DAYS} days (the CA's lifetime), not {days}")
     out = Path(out_dir)
     idents = list(names) + ([MONITOR] if monitor else [])
     files = [out / "ca.pem"] + [out / f"{n}.{ext}" for n in idents for ext in ("pem", "key")]
@@ -181,7 +222,7 @@ def issue(
         raise BadInput(f"{out}: cannot create the folder: {exc.strerror or exc}") from None
     start = (now or dt.datetime.now(dt.UTC)) - BACKDATE
     ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_name = _name(f"{label} CA")
+    ca_name = _name(f"{label} CA"[-MAX_COMMON_NAME:])
     ca_cert = (
         x509.CertificateBuilder()
         .subject_name(ca_name)
@@ -202,7 +243,8 @@ def issue(
     for ident in idents:
         key = ec.generate_private_key(ec.SECP256R1())
         usages = [ExtendedKeyUsageOID.CLIENT_AUTH] + ([] if ident == MONITOR else [ExtendedKeyUsageOID.SERVER_AUTH])
-        alt = _alt_names([ident] + list(names.get(ident, [])))
+        own = [ident] if DNS_NAME_RE.match(ident) else []  # `base_2` is a host name but no DNS name
+        alt = _alt_names(own + list(names.get(ident, [])))
         cert = (
             x509.CertificateBuilder()
             .subject_name(_name(ident))
@@ -235,7 +277,9 @@ def _write(path: Path, data: bytes, mode: int) -> None:
     """Write a file with `mode` from its creation (a key is never readable by others, not even briefly)."""
     tmp = path.with_name(f".{path.name}.partial")
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+        if os.path.lexists(tmp):
+            os.unlink(tmp)  # a leftover, or a planted link: never write through it
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, mode)
         with os.fdopen(fd, "wb") as stream:
             os.fchmod(stream.fileno(), mode)
             stream.write(data)

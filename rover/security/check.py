@@ -10,6 +10,9 @@ import os
 import stat
 from collections.abc import Collection
 
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
 from rover.errors import BadInput, Diagnostic
 from rover.pipeline.spec import MONITOR, Identity, PipelineSpec
 from rover.pipeline.validation import served_addresses
@@ -35,6 +38,28 @@ def _expires_soon(info: CertInfo, what: str, now: dt.datetime) -> str | None:
     if info.not_after - now >= EXPIRY_WARNING:
         return None
     return f"{info.path}: warning: {what} expires in {(info.not_after - now).days} days ({_when(info.not_after)})"
+
+
+def _usage_problems(info: CertInfo, what: str, *, needs_server: bool) -> list[str]:
+    """What TLS would refuse in a leaf certificate's extensions: a CA certificate used as a host's,
+    or extended key usages without client (or, for a listening host, server) authentication."""
+    found = []
+    try:
+        if info.cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca:
+            found.append(f"{info.path}: {what} is a CA certificate, not a host's")
+    except x509.ExtensionNotFound:
+        pass
+    try:
+        usages = set(info.cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value)
+    except x509.ExtensionNotFound:
+        return found
+    wanted = {ExtendedKeyUsageOID.CLIENT_AUTH: "client"} | (
+        {ExtendedKeyUsageOID.SERVER_AUTH: "server"} if needs_server else {}
+    )
+    missing = [word for oid, word in wanted.items() if oid not in usages]
+    if missing:
+        found.append(f"{info.path}: {what} is not for TLS {' and '.join(missing)} authentication (extended key usage)")
+    return found
 
 
 def check_security(
@@ -90,6 +115,7 @@ def check_security(
             found.append(problem)
         elif soon := _expires_soon(info, what, now):
             warnings.append(soon)
+        found += _usage_problems(info, what, needs_server=name != MONITOR and bool(spec.hosts[name].listen))
         if ca is not None and not signed_by(info, ca):
             found.append(f"{info.path}: {what} is not signed by the CA in {ca.path}")
         if key is not None and not key_matches(info, key):
