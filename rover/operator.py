@@ -8,6 +8,7 @@ at the edge of the graph) yield messages from `run` instead.
 from __future__ import annotations
 
 import dataclasses
+import re
 import threading
 import time
 from collections import Counter
@@ -35,6 +36,35 @@ class Out:
 
     type: str
     doc: str = ""
+
+
+@dataclass(frozen=True)
+class Ports:
+    """An operator's ports once its params are known: the class's own, or those its params declare
+    (a bridge whose topics are params). `variadic` takes any input name."""
+
+    inputs: Mapping[str, In]
+    outputs: Mapping[str, Out]
+    variadic: In | None = None
+
+    def input_spec(self, port: str) -> In | None:
+        return self.inputs.get(port) or self.variadic
+
+    def problems(self) -> list[str]:
+        """What is wrong with these ports: a bad name, an unknown message type, an untyped output."""
+        found = []
+        for kind, ports in (("input", self.inputs), ("output", self.outputs)):
+            for name, port in ports.items():
+                if not (isinstance(name, str) and PORT_NAME_RE.match(name)):
+                    found.append(f"{kind} name {name!r} must start with a letter and use letters, digits or _")
+                elif not known_type(port.type):
+                    found.append(f"{kind} {name!r}: unknown message type {port.type!r}")
+                elif kind == "output" and port.type == ANY:
+                    found.append(f"output {name!r} needs a concrete type")
+        return found
+
+
+PORT_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
 
 class Emit(NamedTuple):
@@ -182,17 +212,22 @@ class Operator:
         return cls.inputs.get(port) or cls.variadic
 
     @classmethod
+    def declared_ports(cls, params: Any) -> Ports:
+        """The ports of an operator with these (checked) params: the class's by default. An operator
+        whose ports are named by its params (a ROS 2 bridge's topics) overrides this; the pipeline
+        check then validates wiring and types against them, as for declared ones. Raise ValueError
+        with a message naming the param for params that declare no valid ports."""
+        return Ports(cls.inputs, cls.outputs, cls.variadic)
+
+    @classmethod
     def check_definition(cls) -> None:
         """Raise OperatorDefinitionError when the class's declarations are inconsistent."""
         if not (isinstance(cls.Params, type) and dataclasses.is_dataclass(cls.Params)):
             raise OperatorDefinitionError(f"{cls.__qualname__}.Params must be a dataclass")
-        ports: list[In | Out] = [*cls.inputs.values(), *cls.outputs.values(), *([cls.variadic] if cls.variadic else [])]
-        for port in ports:
-            if not known_type(port.type):
-                raise OperatorDefinitionError(f"{cls.__qualname__}: unknown message type {port.type!r}")
-        for name, port in cls.outputs.items():
-            if port.type == ANY:
-                raise OperatorDefinitionError(f"{cls.__qualname__}: output {name!r} needs a concrete type")
+        if cls.variadic is not None and not known_type(cls.variadic.type):
+            raise OperatorDefinitionError(f"{cls.__qualname__}: unknown message type {cls.variadic.type!r}")
+        for problem in Ports(cls.inputs, cls.outputs).problems():
+            raise OperatorDefinitionError(f"{cls.__qualname__}: {problem}")
 
 
 class Source(Operator):

@@ -19,8 +19,9 @@ def run_operator(op: Operator, inputs: Mapping[str, Sequence[Any]]) -> list[Emit
     """Deliver the messages of each input port to `op.on_input` in event-time order, then call `op.on_end`;
     return what it emitted, in order and as it emitted it. Only the ports given are wired, as in a
     pipeline that leaves the others unconnected; the operator's drops stay in `op.drops`."""
+    ports = type(op).declared_ports(getattr(op, "params", None))
     for port in inputs:
-        if op.input_spec(port) is None:
+        if ports.input_spec(port) is None:
             raise ValueError(f"{type(op).__name__} has no input {port!r}")
     merger = EventTimeMerger(list(inputs))
     for port, messages in inputs.items():

@@ -6,7 +6,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, run_rover
+from conftest import ROOT, read_bag, run_rover, write_imu_dataset
 
 from rover.cli.registry import BUILTINS
 from rover.errors import SpecError
@@ -310,3 +310,49 @@ def test_set_reaches_check_graph_and_run(tmp_path):
     assert run_rover("check", str(ROOT / "pipeline.yaml"), "--set", "slam.wheel=false").returncode == 0
     proc = run_rover("graph", str(ROOT / "pipeline.yaml"), "--set", "slam.window=1")
     assert proc.returncode == 2 and "--set slam.window=1" in proc.stderr and "must be >= 2" in proc.stderr
+
+
+FAN = GOOD.replace(
+    "  record: {uses: recorder, inputs: {pose: heading/pose}",
+    "  fan: {uses: toyops.Fan, inputs: {imu: replay/imu}, params: {outputs: {a: sensor_msgs/msg/Imu}}}\n"
+    "  record: {uses: recorder, inputs: {pose: heading/pose, a: fan/a}",
+)
+
+
+def test_ports_declared_by_params_are_checked_like_declared_ones(tmp_path):
+    """An operator whose outputs its params name (toyops.Fan, as a ROS 2 bridge's topics): wiring
+    to a declared one passes; to an undeclared one is 'has no output' listing the declared ones;
+    a declared type that does not fit the input is a type mismatch."""
+    path = tmp_path / "fan.yaml"
+    path.write_text(FAN)
+    pipeline = load_and_check(path, BUILTINS)
+    assert pipeline.nodes["fan"].output_type("a") == "sensor_msgs/msg/Imu"
+    text = FAN.replace("a: fan/a}", "a: fan/b}")
+    has(problems(tmp_path, text), at(text, "fan/b"), "'fan' (toyops.Fan) has no output 'b'", "(outputs: a)")
+    text = FAN.replace(
+        "heading: {uses: toyops.Heading, inputs: {imu: replay/imu",
+        "heading: {uses: toyops.Heading, inputs: {imu: fan/a",
+    ).replace("{a: sensor_msgs/msg/Imu}", "{a: nav_msgs/msg/Odometry}")
+    has(problems(tmp_path, text), at(text, "fan/a"), "type mismatch", "fan/a sends nav_msgs/msg/Odometry")
+
+
+def test_bad_ports_declared_by_params_are_one_line_each_at_the_params(tmp_path):
+    """An unknown message type, a bad port name, or params the operator refuses (no outputs): one
+    problem at the operator's params, naming what is wrong."""
+    text = FAN.replace("{a: sensor_msgs/msg/Imu}", "{a: sensor_msgs/msg/Imuu, 9b: sensor_msgs/msg/Imu}")
+    found = problems(tmp_path, text)
+    has(found, at(text, "params: {outputs"), "declares output 'a': unknown message type 'sensor_msgs/msg/Imuu'")
+    has(found, at(text, "params: {outputs"), "declares output name '9b'")
+    text = FAN.replace("{a: sensor_msgs/msg/Imu}", "{}")
+    has(problems(tmp_path, text), at(text, "params: {outputs"), "param 'outputs' declares no output port")
+
+
+def test_a_run_sends_on_ports_declared_by_params(tmp_path):
+    """One process: the fan's declared output reaches the recorder, message for message."""
+    dataset = write_imu_dataset(tmp_path / "toy.mcap", 200)
+    path = tmp_path / "fan.yaml"
+    path.write_text(FAN)
+    out = tmp_path / "out"
+    run_rover("run", str(path), "--dataset", str(dataset), "--output", str(out), check=True)
+    topics = [t for t, _s, _d in read_bag(out / "results.mcap")]
+    assert topics.count("/a") == 200

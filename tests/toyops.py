@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from rover.errors import OutputFailed
 from rover.geometry import quaternion_from_yaw
 from rover.messages import ANY, header, make
-from rover.operator import COMPLETE, Emit, In, Operator, Out, RunOutcome, Source, Watermark
+from rover.operator import COMPLETE, Emit, In, Operator, Out, Ports, RunOutcome, Source, Watermark
 
 
 @dataclass(frozen=True)
@@ -180,3 +180,26 @@ class Slow(Operator):
                 time.sleep(0.01)
         time.sleep(self.params.delay_s)
         return ()
+
+
+@dataclass(frozen=True)
+class FanParams:
+    outputs: dict[str, str] = field(default_factory=dict)
+    """output port -> message type: the ports are named by the params, as a ROS 2 bridge's topics are"""
+
+
+class Fan(Operator):
+    """Sends each IMU message on every output its params declare."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    Params = FanParams
+
+    @classmethod
+    def declared_ports(cls, params: FanParams) -> Ports:
+        if not params.outputs:
+            raise ValueError("param 'outputs' declares no output port")
+        return Ports(cls.inputs, {name: Out(typename) for name, typename in params.outputs.items()})
+
+    def on_input(self, port, msg, stamp_ns):
+        for name in self.params.outputs:
+            yield Emit(name, msg)

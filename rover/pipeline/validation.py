@@ -10,13 +10,13 @@ import hashlib
 import ipaddress
 import json
 from collections.abc import Collection, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rover.errors import Diagnostic, SpecError
 from rover.messages import ANY
-from rover.operator import In, Operator, RunContext, Source
+from rover.operator import In, Operator, Ports, RunContext, Source
 from rover.pipeline import params as P
 from rover.pipeline.resolve import UnknownOperator, resolve
 from rover.pipeline.spec import OperatorSpec, PipelineSpec, Wire, did_you_mean, parse, read_document
@@ -31,17 +31,19 @@ class Node:
     cls: type[Operator]
     params: Any
     context: RunContext = RunContext()
+    ports: Ports = field(default_factory=lambda: Ports({}, {}))
+    """the operator's ports with these params (`Operator.declared_ports`)"""
 
     @property
     def name(self) -> str:
         return self.spec.name
 
     def input_type(self, port: str) -> str:
-        spec = self.cls.input_spec(port)
+        spec = self.ports.input_spec(port)
         return spec.type if spec else ANY
 
     def output_type(self, port: str) -> str:
-        return self.cls.outputs[port].type
+        return self.ports.outputs[port].type
 
     def build(self) -> Operator:
         op = self.cls(self.params)
@@ -124,21 +126,36 @@ def _params(doc: Located, spec: OperatorSpec, cls: type[Operator], problems: lis
     return P.bind(cls.Params, spec.params, wording, report)
 
 
+def _ports(doc: Located, spec: OperatorSpec, cls: type[Operator], params: Any, problems: list[Diagnostic]) -> Ports:
+    """The operator's ports with its params; the class's own when the params could not be bound."""
+    if params is None:
+        return Ports(cls.inputs, cls.outputs, cls.variadic)
+    where = ("operators", spec.name, "params")
+    try:
+        ports = cls.declared_ports(params)
+    except ValueError as exc:
+        problems.append(doc.diag(where, f"operator {spec.name!r} ({spec.uses}): {exc}", key=True))
+        return Ports({}, {})
+    for problem in ports.problems():
+        problems.append(doc.diag(where, f"operator {spec.name!r} ({spec.uses}) declares {problem}", key=True))
+    return ports
+
+
 def _check_ports(
     doc: Located, nodes: dict[str, Node], specs: dict[str, OperatorSpec], problems: list[Diagnostic]
 ) -> None:
     for node in nodes.values():
         base = ("operators", node.name, "inputs")
-        cls = node.cls
+        cls, ports = node.cls, node.ports
         for port, wire in node.spec.inputs.items():
-            spec_in: In | None = cls.input_spec(port)
+            spec_in: In | None = ports.input_spec(port)
             if spec_in is None:
-                known = ", ".join(cls.inputs) or "none"
+                known = ", ".join(ports.inputs) or "none"
                 problems.append(
                     doc.diag(
                         base + (port,),
                         f"operator {node.name!r} ({node.spec.uses}) has no input "
-                        f"{port!r}{did_you_mean(port, cls.inputs)} (inputs: {known})",
+                        f"{port!r}{did_you_mean(port, ports.inputs)} (inputs: {known})",
                         key=True,
                     )
                 )
@@ -155,13 +172,13 @@ def _check_ports(
             source = nodes.get(wire.source)
             if source is None:
                 continue
-            if wire.source_port not in source.cls.outputs:
-                known = ", ".join(source.cls.outputs) or "none"
+            if wire.source_port not in source.ports.outputs:
+                known = ", ".join(source.ports.outputs) or "none"
                 problems.append(
                     doc.diag(
                         base + (port,),
                         f"operator {wire.source!r} ({source.spec.uses}) has no output "
-                        f"{wire.source_port!r}{did_you_mean(wire.source_port, source.cls.outputs)} "
+                        f"{wire.source_port!r}{did_you_mean(wire.source_port, source.ports.outputs)} "
                         f"(outputs: {known})",
                     )
                 )
@@ -175,7 +192,7 @@ def _check_ports(
                         f"input {port!r} of {node.name!r} takes {spec_in.type}",
                     )
                 )
-        for port, spec_in in cls.inputs.items():
+        for port, spec_in in ports.inputs.items():
             if spec_in.required and port not in node.spec.inputs:
                 problems.append(
                     doc.diag(
@@ -399,7 +416,8 @@ def check(spec: PipelineSpec, builtins: Mapping[str, str], problems: list[Diagno
             hint = did_you_mean(op.uses, builtins) if "." not in op.uses else ""
             problems.append(doc.diag(("operators", op.name, "uses"), f"{exc}{hint}"))
             continue
-        nodes[op.name] = Node(op, cls, _params(doc, op, cls, problems), context)
+        params = _params(doc, op, cls, problems)
+        nodes[op.name] = Node(op, cls, params, context, _ports(doc, op, cls, params, problems))
     _check_ports(doc, nodes, spec.operators, problems)
     _check_cycles(doc, spec.operators, problems)
     _check_hosts(doc, spec, problems)

@@ -163,7 +163,7 @@ class Task:
         self.done = threading.Event()
         self.outputs = {
             port: Output(session, keys.port_key(pipeline, node.name, port), out.type)
-            for port, out in node.cls.outputs.items()
+            for port, out in node.ports.outputs.items()
         }
         self.thread = threading.Thread(target=self._main, name=f"rover-{node.name}", daemon=True)
 
@@ -272,7 +272,7 @@ class OperatorTask(Task):
         """the threads of this process's tasks: their puts may wait on a full inbox for as long as it takes"""
         self.inbox: Inbox[tuple[str, bytes, bytes | None]] = Inbox(node.spec.inbox)
         self.merger = EventTimeMerger(list(node.spec.inputs))
-        self.ports = {port: spec for port in node.spec.inputs if (spec := node.cls.input_spec(port)) is not None}
+        self.ports = {port: spec for port in node.spec.inputs if (spec := node.ports.input_spec(port)) is not None}
         self.subscribers = [
             session.declare_subscriber(
                 keys.port_key(pipeline, wire.source, wire.source_port),
