@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import serial  # type: ignore[import-untyped]
 from conftest import read_bag, run_rover
 from create2_device import Create2Device, SentFrame, constant, standing
+from scripted_port import ScriptedPort
 
 from rover.drivers.create2 import (
     Create2,
@@ -396,39 +396,6 @@ def test_geometry_must_be_positive():
         Create2Params(port="/dev/ttyUSB0", wheel_base_m=0.0)
     with pytest.raises(ParamValueError, match="timeout_s"):
         Create2Params(port="/dev/ttyUSB0", timeout_s=-1.0)
-
-
-class ScriptedPort:
-    """A port that returns the given chunks, then fails as an unplugged USB adapter does."""
-
-    def __init__(self, chunks: list[bytes]):
-        self.chunks = list(chunks)
-        self.written = bytearray()
-        self.closed = False
-
-    @property
-    def in_waiting(self) -> int:
-        return len(self.chunks[0]) if self.chunks else 0
-
-    def read(self, size: int = 1) -> bytes:
-        if not self.chunks:
-            raise serial.SerialException("read failed: [Errno 5] Input/output error")
-        return self.chunks.pop(0)
-
-    def write(self, data: bytes) -> int:
-        if self.closed or not self.chunks:
-            raise OSError(5, "Input/output error")
-        self.written += data
-        return len(data)
-
-    def flush(self) -> None:
-        pass
-
-    def reset_input_buffer(self) -> None:
-        pass
-
-    def close(self) -> None:
-        self.closed = True
 
 
 def test_frames_without_both_encoder_counts_are_dropped(caplog):

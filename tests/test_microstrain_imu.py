@@ -8,12 +8,12 @@ import math
 import os
 import threading
 import time
-from collections.abc import Iterator
 from itertools import pairwise
 
 import pytest
 from conftest import read_bag, run_rover
 from mip_device import Command, MipDevice, Sent
+from scripted_port import ScriptedPort
 
 from rover.drivers.microstrain_imu import (
     DeviceClock,
@@ -301,41 +301,10 @@ def test_without_configure_the_driver_only_listens(source_of):
     assert all(vectors(i.msg) == ((0.0, 0.0, G), (0.0, 0.0, -0.5)) for i in items)
 
 
-class CannedPort:
-    """A port that gives `chunks`, one a read, then fails as an unplugged one does."""
-
-    def __init__(self, chunks: list[bytes]):
-        self.chunks: Iterator[bytes] = iter(chunks)
-        self.written = b""
-
-    @property
-    def in_waiting(self) -> int:
-        return 0
-
-    def read(self, size: int = 1) -> bytes:
-        chunk = next(self.chunks, None)
-        if chunk is None:
-            raise OSError(5, "Input/output error")
-        return chunk
-
-    def write(self, data: bytes) -> int:
-        self.written += data
-        return len(data)
-
-    def flush(self) -> None:
-        pass
-
-    def reset_input_buffer(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def test_packets_without_both_vectors_or_of_other_sets_are_dropped():
     accel = (0x04, bytes.fromhex("3F800000 00000000 00000000"))
     gyro = (0x05, bytes.fromhex("00000000 3F800000 00000000"))
-    port = CannedPort([encode(0x80, [accel]), b"", encode(0x81, [accel, gyro]), encode(0x80, [accel, gyro])])
+    port = ScriptedPort([encode(0x80, [accel]), b"", encode(0x81, [accel, gyro]), encode(0x80, [accel, gyro])])
     before = time.time_ns()
     source = MicrostrainImu(MicrostrainParams(port="canned", configure=False), open_port=lambda *_: port)
     items = list(source.run(threading.Event()))
