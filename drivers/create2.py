@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import termios
 import threading
 import time
 from collections import deque
@@ -408,7 +409,7 @@ class Create2(Source):
             self.port.reset_input_buffer()
             self._streaming = True
             self.port.write(bytes([OP_START, OP_SAFE, OP_STREAM, 2, LEFT_ENCODER, RIGHT_ENCODER]))
-        except OSError as exc:
+        except (OSError, termios.error) as exc:
             log.warning("create2: %s: cannot send the stream request (%s): no odometry", p.port, explain(exc))
             return
         last_frame = time.monotonic()
@@ -487,8 +488,8 @@ class Create2(Source):
             return
         self._closed = True
         if self._streaming:
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, termios.error):
                 self.port.write(bytes([OP_PAUSE_RESUME_STREAM, 0, OP_STOP]))
                 self.port.flush()
-        with contextlib.suppress(OSError):
+        with contextlib.suppress(OSError, termios.error):
             self.port.close()

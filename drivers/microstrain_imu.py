@@ -19,7 +19,8 @@ afresh) when the device time goes backwards, or jumps against the host clock by 
 `REANCHOR_S` between two packets (the device's clock was set). Stamps are kept strictly increasing
 and never before a watermark already sent; watermarks, sent while no bytes come, run `timeout_s`
 behind the host clock (a packet delayed even more is stamped just after the last one). A packet
-without a timestamp is stamped when received.
+without a timestamp is stamped when received. A run that begins more than `timeout_s` after the
+device was set up (its host waited for the others) discards what the device sent meanwhile.
 
 The stream ends, with one warning, when the port fails (unplugged device) or the device says
 nothing for `timeout_s` while streaming. On close a configured device is set back to idle.
@@ -30,6 +31,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -229,6 +231,8 @@ class MicrostrainImu(Source):
         self._pending: list[Packet] = []
         """data packets read with the last command's reply, for `run`"""
         self._pending_ns = 0
+        self._configured_at = time.monotonic()
+        """when the device was set up (or opened): a run starting much later discards the backlog"""
         self.port = open_port("microstrain_imu", p.port, p.baud)
         if p.configure:
             try:
@@ -255,6 +259,7 @@ class MicrostrainImu(Source):
         )
         self._command("resume", BASE_SET, CMD_RESUME)
         self.configured = True
+        self._configured_at = time.monotonic()
         log.info("%s: streaming at %g Hz (base rate %d Hz / %d)", self._who, self.rate_hz, base_hz, decimation)
 
     def _decimation(self, base_hz: int) -> int:
@@ -319,31 +324,44 @@ class MicrostrainImu(Source):
         lag_ns = round(p.timeout_s * 1e9)
         streaming = p.configure
         heard = time.monotonic()
+        """when the last IMU sample arrived: bytes of anything else do not keep the stream alive"""
         warned_silent = False
-        if self._pending:
+        if time.monotonic() - self._configured_at > p.timeout_s:
+            self._discard_backlog()
+        elif self._pending:
             yield from self._emit(self._pending, self._pending_ns)
-            self._pending = []
+        self._pending = []
         while not stop.is_set():
             try:
                 chunk = self._read()
             except OSError as exc:
                 log.warning("%s: the device went away: %s; end of its stream", self._who, explain(exc))
                 return
-            if not chunk:
-                silent_s = time.monotonic() - heard
-                if silent_s >= p.timeout_s and streaming:
-                    log.warning("%s: silent for %.1f s: the device went away: end of its stream", self._who, silent_s)
-                    return
-                if silent_s >= p.timeout_s and not warned_silent:
-                    log.warning("%s: nothing received yet: is the device streaming? (configure is off)", self._who)
-                    warned_silent = True
-                yield Watermark(self.clock.watermark(time.time_ns(), lag_ns))
-                continue
-            heard, streaming = time.monotonic(), True
             host_ns = time.time_ns()
-            packets = self.parser.feed(chunk)
+            emitted = list(self._emit(self.parser.feed(chunk), host_ns)) if chunk else []
             self._count_stream_drops()
-            yield from self._emit(packets, host_ns)
+            if emitted:
+                heard, streaming = time.monotonic(), True
+                yield from emitted
+                continue
+            silent_s = time.monotonic() - heard
+            if silent_s >= p.timeout_s and streaming:
+                log.warning("%s: silent for %.1f s: the device went away: end of its stream", self._who, silent_s)
+                return
+            if silent_s >= p.timeout_s and not warned_silent:
+                log.warning("%s: no IMU sample received yet: is the device streaming? (configure is off)", self._who)
+                warned_silent = True
+            yield Watermark(self.clock.watermark(time.time_ns(), lag_ns))
+
+    def _discard_backlog(self) -> None:
+        """Forget what the device sent while the run had not begun (the other hosts were awaited,
+        possibly minutes): stamped now, it would be packed into the first instants of the run."""
+        try:
+            self.port.reset_input_buffer()
+        except (OSError, termios.error) as exc:
+            log.debug("%s: could not discard the input buffer: %s", self._who, exc)
+        self._pending = []
+        self.parser = MipParser()
 
     def _count_stream_drops(self) -> None:
         """Bring the drop counts up to the parser's (it counts from the start)."""

@@ -46,6 +46,8 @@ class Ports:
     inputs: Mapping[str, In]
     outputs: Mapping[str, Out]
     variadic: In | None = None
+    known: bool = True
+    """False when params that name the ports failed their own checks: wiring is then not judged"""
 
     def input_spec(self, port: str) -> In | None:
         return self.inputs.get(port) or self.variadic
@@ -61,6 +63,8 @@ class Ports:
                     found.append(f"{kind} {name!r}: unknown message type {port.type!r}")
                 elif kind == "output" and port.type == ANY:
                     found.append(f"output {name!r} needs a concrete type")
+        if self.variadic is not None and not known_type(self.variadic.type):
+            found.append(f"inputs of any name: unknown message type {self.variadic.type!r}")
         return found
 
 
@@ -224,9 +228,7 @@ class Operator:
         """Raise OperatorDefinitionError when the class's declarations are inconsistent."""
         if not (isinstance(cls.Params, type) and dataclasses.is_dataclass(cls.Params)):
             raise OperatorDefinitionError(f"{cls.__qualname__}.Params must be a dataclass")
-        if cls.variadic is not None and not known_type(cls.variadic.type):
-            raise OperatorDefinitionError(f"{cls.__qualname__}: unknown message type {cls.variadic.type!r}")
-        for problem in Ports(cls.inputs, cls.outputs).problems():
+        for problem in Ports(cls.inputs, cls.outputs, cls.variadic).problems():
             raise OperatorDefinitionError(f"{cls.__qualname__}: {problem}")
 
 

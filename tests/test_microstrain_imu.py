@@ -310,7 +310,8 @@ def test_packets_without_both_vectors_or_of_other_sets_are_dropped():
     items = list(source.run(threading.Event()))
     source.close()
     emits = [i for i in items if isinstance(i, Emit)]
-    assert [type(i) for i in items] == [Watermark, Emit]
+    # a read that brings no usable sample is idle time too: a watermark, so readers are never stalled
+    assert [type(i) for i in items] == [Watermark, Watermark, Emit]  # the last two chunks come in one read
     assert len(emits) == 1 and vectors(emits[0].msg) == ((G, 0.0, 0.0), (0.0, -1.0, 0.0))
     assert before <= stamps_of(emits)[0] <= time.time_ns()  # no timestamp: stamped when received
     assert source.drops == {

@@ -72,7 +72,13 @@ class Pipeline:
             self.name,
             sorted(self.spec.hosts),
             [
-                [n.name, n.spec.uses, n.spec.host, sorted((p, w.text) for p, w in n.spec.inputs.items())]
+                [
+                    n.name,
+                    n.spec.uses,
+                    n.spec.host,
+                    sorted((p, w.text) for p, w in n.spec.inputs.items()),
+                    sorted((p, o.type) for p, o in n.ports.outputs.items()),  # params may name them
+                ]
                 for n in sorted(self.nodes.values(), key=lambda n: n.name)
             ],
         ]
@@ -128,14 +134,15 @@ def _params(doc: Located, spec: OperatorSpec, cls: type[Operator], problems: lis
 
 def _ports(doc: Located, spec: OperatorSpec, cls: type[Operator], params: Any, problems: list[Diagnostic]) -> Ports:
     """The operator's ports with its params; the class's own when the params could not be bound."""
-    if params is None:
-        return Ports(cls.inputs, cls.outputs, cls.variadic)
+    if params is None:  # the params' own problems are reported; ports they would name are unknown
+        named_by_params = any("declared_ports" in vars(c) for c in cls.__mro__ if c is not Operator)
+        return Ports(cls.inputs, cls.outputs, cls.variadic, known=not named_by_params)
     where = ("operators", spec.name, "params")
     try:
         ports = cls.declared_ports(params)
     except ValueError as exc:
         problems.append(doc.diag(where, f"operator {spec.name!r} ({spec.uses}): {exc}", key=True))
-        return Ports({}, {})
+        return Ports({}, {}, known=False)
     for problem in ports.problems():
         problems.append(doc.diag(where, f"operator {spec.name!r} ({spec.uses}) declares {problem}", key=True))
     return ports
@@ -147,7 +154,7 @@ def _check_ports(
     for node in nodes.values():
         base = ("operators", node.name, "inputs")
         cls, ports = node.cls, node.ports
-        for port, wire in node.spec.inputs.items():
+        for port, wire in node.spec.inputs.items() if ports.known else ():
             spec_in: In | None = ports.input_spec(port)
             if spec_in is None:
                 known = ", ".join(ports.inputs) or "none"
@@ -170,7 +177,7 @@ def _check_ports(
                 )
                 continue
             source = nodes.get(wire.source)
-            if source is None:
+            if source is None or not source.ports.known:
                 continue
             if wire.source_port not in source.ports.outputs:
                 known = ", ".join(source.ports.outputs) or "none"
@@ -192,7 +199,7 @@ def _check_ports(
                         f"input {port!r} of {node.name!r} takes {spec_in.type}",
                     )
                 )
-        for port, spec_in in ports.inputs.items():
+        for port, spec_in in ports.inputs.items() if ports.known else ():
             if spec_in.required and port not in node.spec.inputs:
                 problems.append(
                     doc.diag(
