@@ -17,5 +17,7 @@ BUILTINS: dict[str, str] = {
     "rig_source": "rover.drivers.rig_source:RigSource",
     "recorder": "rover.drivers.recorder:Recorder",
     "run_outputs": "rover.drivers.run_outputs:RunOutputs",
+    "ros2_subscribe": "rover.drivers.ros2:Ros2Subscribe",
+    "ros2_publish": "rover.drivers.ros2:Ros2Publish",
 }
 """Short name -> `module:Class`; modules are imported only when a pipeline uses them."""
