@@ -349,11 +349,12 @@ def lab_certs(folder: Path) -> Path:
     return folder
 
 
-def security_block(certs: Path) -> str:
-    """The `security:` section naming the certificates `lab_certs` wrote."""
+def security_block(certs: Path, *, monitor: bool = True) -> str:
+    """The `security:` section naming the certificates `lab_certs` wrote (the lab's hosts, and the
+    monitor unless told otherwise)."""
     entries = "".join(f'    {h}: {{cert: "{certs}/{h}.pem", key: "{certs}/{h}.key"}}\n' for h in ADDRESSES)
-    monitor = f'{{cert: "{certs}/monitor.pem", key: "{certs}/monitor.key"}}'
-    return f'security:\n  ca: "{certs}/ca.pem"\n  hosts:\n{entries}  monitor: {monitor}\n'
+    identity = f'  monitor: {{cert: "{certs}/monitor.pem", key: "{certs}/monitor.key"}}\n' if monitor else ""
+    return f'security:\n  ca: "{certs}/ca.pem"\n  hosts:\n{entries}{identity}'
 
 
 def pipeline_file(tmp_path: Path, *, certs: Path | None = None, **host_keys: object) -> Path:

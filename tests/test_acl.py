@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from netns import security_block
 
 import rover
 from rover.pipeline.spec import MONITOR, parse, read_document
@@ -26,14 +27,7 @@ operators:
 """nuc -> base: tick/imu; base -> nuc: btick/silent; nuc -> laptop only: tick/silent; base -> laptop:
 pass/imu; btick/imu and watch/imu nobody reads."""
 
-SECURITY = """\
-security:
-  ca: pki/ca.pem
-  hosts:
-    nuc: {cert: pki/nuc.pem, key: pki/nuc.key}
-    base: {cert: pki/base.pem, key: pki/base.key}
-    laptop: {cert: pki/laptop.pem, key: pki/laptop.key}
-"""
+SECURITY = security_block(Path("pki"), monitor=False)
 """the files need not exist: the rules come from the wiring alone"""
 
 STAR = (

@@ -9,6 +9,7 @@ import re
 import shutil
 import stat
 import subprocess
+from pathlib import Path
 
 import pytest
 import yaml
@@ -17,6 +18,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from netns import security_block
 
 from rover.errors import BadInput
 from rover.security.certs import (
@@ -382,14 +384,7 @@ hosts:
   base: {connect: ["tls/10.0.0.1:7447"]}
   laptop: {connect: ["tls/nuc.lab:7447"]}
 """
-SECURITY = """\
-security:
-  ca: pki/ca.pem
-  hosts:
-    nuc: {cert: pki/nuc.pem, key: pki/nuc.key}
-    base: {cert: pki/base.pem, key: pki/base.key}
-    laptop: {cert: pki/laptop.pem, key: pki/laptop.key}
-"""
+SECURITY = security_block(Path("pki"), monitor=False)
 OPERATORS = """\
 operators:
   tick: {uses: toyops.Ticker, host: nuc}

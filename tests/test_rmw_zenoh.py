@@ -6,9 +6,8 @@ namespace) and the values of /tmp/rmw_zenoh_spec.md (the GID and attachment of t
 
 from __future__ import annotations
 
-import struct
-
 import pytest
+from rmw_bytes import legacy_attachment
 
 from rover.drivers import rmw_zenoh as rz
 
@@ -133,20 +132,8 @@ def test_attachment_bytes():
         rz.attachment(1, 0, b"short")
 
 
-def legacy(seq: int, stamp_ns: int, gid: bytes) -> bytes:
-    """The labelled attachment of rmw_zenoh_cpp 0.2.0-0.2.3."""
-    return (
-        b"\x0fsequence_number"
-        + struct.pack("<q", seq)
-        + b"\x10source_timestamp"
-        + struct.pack("<q", stamp_ns)
-        + b"\x0asource_gid\x10"
-        + gid
-    )
-
-
 def test_both_attachment_forms_parse():
-    old = legacy(1, EXAMPLE_STAMP_NS, TALKER_GID)
+    old = legacy_attachment(1, EXAMPLE_STAMP_NS, TALKER_GID)
     assert len(old) == 77
     assert old.startswith(b"\x0fsequence_number\x01" + bytes(7) + b"\x10source_timestamp\x15\xcd\x85")
     assert rz.parse_attachment(old) == (1, EXAMPLE_STAMP_NS, TALKER_GID)
@@ -161,8 +148,8 @@ def test_both_attachment_forms_parse():
         EXAMPLE_ATTACHMENT[:-1],
         EXAMPLE_ATTACHMENT + b"\x00",
         EXAMPLE_ATTACHMENT[:16] + b"\x08" + EXAMPLE_ATTACHMENT[17:],  # a GID length other than 16
-        legacy(1, 2, TALKER_GID).replace(b"sequence_number", b"sequence_numbex"),
-        legacy(1, 2, TALKER_GID)[:-1],
+        legacy_attachment(1, 2, TALKER_GID).replace(b"sequence_number", b"sequence_numbex"),
+        legacy_attachment(1, 2, TALKER_GID)[:-1],
         bytes(77),
     ],
 )

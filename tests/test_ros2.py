@@ -18,6 +18,7 @@ import pytest
 import xxhash
 import zenoh
 from conftest import free_port, run_rover
+from rmw_bytes import legacy_attachment
 from rosbags.typesys import Stores, get_typestore
 
 from rover.drivers.rmw_zenoh import parse_entity_token
@@ -112,17 +113,6 @@ def attachment33(seq: int, stamp_ns: int) -> bytes:
     return struct.pack("<qqB16s", seq, stamp_ns, 16, GID)
 
 
-def attachment77(seq: int, stamp_ns: int) -> bytes:
-    return (
-        b"\x0fsequence_number"
-        + struct.pack("<q", seq)
-        + b"\x10source_timestamp"
-        + struct.pack("<q", stamp_ns)
-        + b"\x0asource_gid\x10"
-        + GID
-    )
-
-
 def test_subscribe_takes_what_rmw_zenoh_publishes_and_drops_the_rest(router):
     op = Ros2Subscribe(Ros2SubscribeParams(topics=IMU_TOPICS, router=router))
     node = client(router)
@@ -133,7 +123,7 @@ def test_subscribe_takes_what_rmw_zenoh_publishes_and_drops_the_rest(router):
         t1, t3, source2 = 1_700_000_000_100_000_000, 1_700_000_000_300_000_000, 1_700_000_000_222_000_000
         jazzy_pub.put(jazzy_imu(t1, 0.25), attachment=attachment33(1, t1 + 5))
         humble_pub.put(jazzy_imu(0, 0.5), attachment=attachment33(1, source2))  # zero stamp: the source's
-        jazzy_pub.put(jazzy_imu(t3, 0.75), attachment=attachment77(2, t3 + 5))  # rmw_zenoh 0.2.0-0.2.3
+        jazzy_pub.put(jazzy_imu(t3, 0.75), attachment=legacy_attachment(2, t3 + 5, GID))  # rmw_zenoh 0.2.0-0.2.3
         jazzy_pub.put(jazzy_imu(t3, 1.0))  # no attachment
         jazzy_pub.put(jazzy_imu(t3, 1.0), attachment=b"\x01" * 10)
         jazzy_pub.put(b"\x00\x01\x00\x00\x01", attachment=attachment33(3, t3))  # truncated CDR
