@@ -16,6 +16,7 @@ BUILTINS: dict[str, str] = {
     "csi_file": "rover.drivers.csi_file:CsiFile",
     "rig_source": "rover.drivers.rig_source:RigSource",
     "recorder": "rover.drivers.recorder:Recorder",
+    "dataset_recorder": "rover.drivers.dataset_recorder:DatasetRecorder",
     "run_outputs": "rover.drivers.run_outputs:RunOutputs",
     "ros2_subscribe": "rover.drivers.ros2:Ros2Subscribe",
     "ros2_publish": "rover.drivers.ros2:Ros2Publish",

@@ -8,7 +8,6 @@ custom definitions are honoured, and logged at their header stamp (event time).
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 import struct
@@ -20,11 +19,10 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
-import yaml
 from rosbags.highlevel import AnyReader, AnyReaderError
 
-import rover
 from rover.errors import BadInput, SpecError
+from rover.formats import dataset
 from rover.formats.bag import BagReader, BagWriter, check_output
 from rover.formats.rig import Rig, load_rig
 from rover.formats.truth import read_tags_csv, read_tum
@@ -33,8 +31,8 @@ from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
 log = logging.getLogger("rover.convert")
 T = TypeVar("T")
 
-ROLES = {"csi": "rover_msgs/msg/CsiFrame", "imu": "sensor_msgs/msg/Imu", "odom": "nav_msgs/msg/Odometry"}
-OUTPUT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
+ROLES = dataset.TYPES
+OUTPUT_TOPICS = dataset.TOPICS
 TRUTH_POSE, TRUTH_TAGS = "/groundtruth/pose", "/groundtruth/tags"
 STANDARD_GRAVITY_M_S2 = 9.80665
 G_UNITS_BAND = (0.8, 1.2)
@@ -88,16 +86,6 @@ def resolve_sources(paths: Sequence[str | Path]) -> Sources:
         else:
             bags.append(path)
     return Sources(bags, found.get("setup"), found.get("truth"), found.get("tags"))
-
-
-def _sha256(path: Path) -> str:
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    digest = hashlib.sha256()
-    for file in files:
-        with file.open("rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                digest.update(block)
-    return digest.hexdigest()
 
 
 def _choose_topics(reader: AnyReader, rig: Rig, overrides: dict[str, str]) -> dict[str, str | None]:
@@ -292,15 +280,6 @@ def _as_rover_cdr(reader: AnyReader, conn: Any, raw: bytes, role: str, same_layo
     return ours
 
 
-def _dataset_setup(rig: Rig) -> str:
-    """The rig description stored in the dataset, with topics renamed to the dataset's own."""
-    data = yaml.safe_load(rig.text) or {}
-    data["topics"] = {
-        role: (OUTPUT_TOPICS[role] if rig.topics.get(role, "") is not None else None) for role in OUTPUT_TOPICS
-    }
-    return yaml.safe_dump(data, sort_keys=False)
-
-
 def _resolved(path: Path) -> Path:
     try:
         return path.resolve()
@@ -350,11 +329,7 @@ def convert(
     _check_not_an_input(output, inputs)
     check_output(output, force=force)
     report = Report(output)
-    provenance = {
-        "tool": f"rover {rover.__version__}",
-        "command": command_line,
-        "sources": yaml.safe_dump([{"path": str(p), "sha256": _sha256(p)} for p in inputs]),
-    }
+    origin = dataset.provenance(command_line, inputs)
     try:
         reader = AnyReader(sources.bags)
         reader.open()
@@ -416,7 +391,7 @@ def convert(
         for k, (stamp, msg) in enumerate(_truth_messages(truth, tags, first))
     ]
     rows.sort(key=lambda r: (r[0], r[1]))
-    metadata = {"rover.setup": {"yaml": _dataset_setup(rig)}, "rover.provenance": provenance}
+    metadata = {dataset.SETUP_METADATA: {"yaml": dataset.setup_yaml(rig)}, dataset.PROVENANCE_METADATA: origin}
     if tags:
         metadata["rover.truth"] = {"tags_csv": Path(tags).read_text(encoding="utf-8")}
     with BagWriter(output, metadata=metadata) as bag:

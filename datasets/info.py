@@ -10,10 +10,9 @@ from typing import Any
 
 from rover.errors import BadInput, SpecError
 from rover.formats.bag import BagReader, shown
+from rover.formats.dataset import SETUP_METADATA
 from rover.pipeline.yamlpos import safe_load_limited
 
-SETUP_METADATA = "rover.setup"
-PROVENANCE_METADATA = "rover.provenance"
 CSI_TYPE = "rover_msgs/msg/CsiFrame"
 
 log = logging.getLogger("rover.info")

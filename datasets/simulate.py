@@ -13,12 +13,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-import rover
 from rover.datasets.imu_model import imu_samples, odometry_samples
 from rover.datasets.motion import Motion
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import Receiver, Scenario
 from rover.errors import BadInput
+from rover.formats import dataset
 from rover.formats.bag import BagWriter, check_output
 from rover.formats.intel5300 import RecordHeader, encode_record
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, phase_jump_step_rad
@@ -346,12 +346,8 @@ def simulate(
         },
     }
     metadata = {
-        "rover.setup": {"yaml": _setup_yaml(scenario, antennas, calibration)},
-        "rover.provenance": {
-            "tool": f"rover {rover.__version__}",
-            "command": command_line,
-            "sources": f"scenario {scenario.name}, seed {seed}",
-        },
+        dataset.SETUP_METADATA: {"yaml": _setup_yaml(scenario, antennas, calibration)},
+        dataset.PROVENANCE_METADATA: dataset.provenance(command_line, f"scenario {scenario.name}, seed {seed}"),
         "rover.simulation": {"yaml": yaml.safe_dump(simulation, sort_keys=False), "scenario": scenario.text},
         "rover.truth": {"tags_csv": tags_csv},
     }

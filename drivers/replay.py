@@ -17,6 +17,8 @@ from typing import Literal
 
 from rover.errors import BadInput, SpecError
 from rover.formats.bag import BagReader, shown
+from rover.formats.dataset import SETUP_METADATA
+from rover.formats.dataset import TOPICS as DEFAULT_TOPICS
 from rover.formats.rig import load_rig
 from rover.messages import Raw, cdr_stamp_ns, header, message_class
 from rover.operator import Emit, Out, Source, Watermark
@@ -24,8 +26,6 @@ from rover.pipeline.params import Checked, PositiveFloat
 
 log = logging.getLogger("rover.dataset_replay")
 
-SETUP_METADATA = "rover.setup"
-DEFAULT_TOPICS = {"csi": "/csi", "imu": "/imu/data", "odom": "/odom"}
 READ_FAILURE = "not a readable MCAP dataset"
 
 

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
+import re
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,12 +18,19 @@ from rich.console import Console
 
 from rover.errors import TransportError
 from rover.runtime.status import (
+    CLOCK_WARN_S,
+    ClockOffset,
+    Clocks,
+    ClockSpread,
     HostStatus,
     OperatorStatus,
     StatusError,
+    clock_offset,
+    clock_spread,
     collect,
     rates,
     render,
+    report,
     status_key,
     status_selector,
 )
@@ -66,6 +75,9 @@ def test_json_round_trip():
     status = snapshot(error="boom")
     assert HostStatus.from_json(status.to_json()) == status
     assert json.loads(status.to_json())["version"] == 1
+    clocked = replace(status, clock_ns=1_700_000_000_123_456_789)
+    assert HostStatus.from_json(clocked.to_json()) == clocked
+    assert json.loads(clocked.to_json())["clock_ns"] == 1_700_000_000_123_456_789
     assert status.operators[0].lag_s == pytest.approx(0.25)
     assert status.operators[1].lag_s is None
 
@@ -114,6 +126,11 @@ def _set(path: str, value: object) -> bytes:
         (_set("operators.1.last_error", None), "operators[1].last_error"),
         (_set("operators.1.dropped", ...), "operators[1].dropped"),
         (_set("operators.1", "replay"), "operators[1]"),
+        (_set("clock_ns", "1700000000000000000"), "clock_ns"),
+        (_set("clock_ns", -1), "clock_ns"),
+        (_set("clock_ns", True), "clock_ns"),
+        (_set("clock_ns", 1.7e18), "clock_ns"),
+        (_set("clock_ns", 2**63), "clock_ns"),
     ],
 )
 def test_from_json_names_the_bad_field(payload, field):
@@ -121,6 +138,11 @@ def test_from_json_names_the_bad_field(payload, field):
         HostStatus.from_json(payload)
     assert raised.value.field == field
     assert str(raised.value).startswith(f"{field}: " if field else "not a UTF-8 JSON status")
+
+
+def test_a_reply_without_clock_is_from_an_older_host():
+    assert HostStatus.from_json(_set("clock_ns", ...)).clock_ns is None
+    assert HostStatus.from_json(_set("clock_ns", 0)).clock_ns == 0
 
 
 def test_collect_keeps_good_replies_and_notes_the_others():
@@ -151,8 +173,9 @@ def test_render_shows_operators_and_hosts_not_answering():
     text = _text(render({"a": snapshot(1, error="[bold]boom[/bold]")}, {"a": snapshot(0)}, ["a", "b"], ["a note"]))
     rows = [line.split() for line in text.splitlines()]
     assert "pipeline toy: 1 of 2 hosts answering" in text
-    assert ["b", "not", "answering", "-"] in rows
-    assert ["a", "running", "11", "s", "lost", "c"] in rows
+    assert ["b", "not", "answering", "-", "-"] in rows
+    assert ["a", "running", "11", "s", "-", "lost", "c"] in rows  # no clock measured: "-"
+    assert "clocks:" not in text
     heading = next(row for row in rows if row[1:2] == ["heading"])
     assert heading == [
         "a",
@@ -179,33 +202,159 @@ def test_render_without_previous_snapshot_shows_no_rate():
     assert ["odom", "-"] in rows
 
 
+def test_clock_offset_is_the_midpoint_of_the_round_trip():
+    # sent at 1 s, received 400 ns later: the host read 250.1 us past the midpoint
+    assert clock_offset(1_000_250_300, 1_000_000_000, 1_000_000_400) == ClockOffset(250_100, 200)
+    assert clock_offset(1_000_000_000, 1_000_250_000, 1_000_250_400) == ClockOffset(-250_200, 200)
+    assert clock_offset(5, 5, 5) == ClockOffset(0, 0)
+    # an odd round trip: the bound is rounded up, so it still covers [clock - received, clock - sent]
+    odd = clock_offset(10, 0, 3)
+    assert odd == ClockOffset(9, 2)
+    assert odd.offset_ns - odd.uncertainty_ns <= 10 - 3 and odd.offset_ns + odd.uncertainty_ns >= 10 - 0
+    with pytest.raises(ValueError, match="before its query was sent"):
+        clock_offset(10, 5, 4)
+
+
+def test_clocks_keep_the_shortest_round_trip_of_the_last_replies():
+    clocks = Clocks(keep=3)
+    assert clocks.best() == {}
+    for offset_ms, half_rtt_us in ((10, 500), (12, 100), (11, 300)):
+        clocks.add("a", ClockOffset(offset_ms * MS, half_rtt_us * 1000))
+    clocks.add("b", ClockOffset(-3 * MS, 900))
+    assert clocks.best() == {"a": ClockOffset(12 * MS, 100_000), "b": ClockOffset(-3 * MS, 900)}
+    for offset_ms, half_rtt_us in ((20, 400), (21, 200), (22, 600)):  # the 100 us one is now too old
+        clocks.add("a", ClockOffset(offset_ms * MS, half_rtt_us * 1000))
+    assert clocks.best()["a"] == ClockOffset(21 * MS, 200_000)
+    clocks.add("a", ClockOffset(23 * MS, 200_000))  # as tight as the best: the later one wins
+    assert clocks.best()["a"] == ClockOffset(23 * MS, 200_000)
+
+
+def test_clock_spread_is_the_largest_difference_between_two_hosts():
+    offsets = {
+        "a": ClockOffset(10 * MS, 1 * MS),
+        "b": ClockOffset(-5 * MS, 2 * MS),
+        "c": ClockOffset(1 * MS, MS // 2),
+    }
+    spread = clock_spread(offsets)
+    assert spread == ClockSpread("a", "b", 15 * MS, 3 * MS)
+    assert spread.too_far
+    close = clock_spread({"a": ClockOffset(2 * MS, 0), "b": ClockOffset(-2 * MS, 0)})
+    assert close == ClockSpread("a", "b", 4 * MS, 0) and not close.too_far
+    assert CLOCK_WARN_S == 0.005
+    assert ClockSpread("a", "b", 5 * MS + 1, 0).too_far and not ClockSpread("a", "b", 5 * MS, 9 * MS).too_far
+    assert clock_spread({"a": ClockOffset(7, 0), "b": ClockOffset(7, 0)}) == ClockSpread("b", "a", 0, 0)
+    assert clock_spread({"a": ClockOffset(7, 0)}) is None
+    assert clock_spread({}) is None
+
+
+def test_render_shows_each_hosts_clock_and_the_largest_difference():
+    offsets = {"a": ClockOffset(12_300_000, 400_000), "b": ClockOffset(-2_000_000, 300_000), "gone": ClockOffset(0, 0)}
+    statuses = {"a": snapshot(1), "b": snapshot(1, host="b")}
+    text = _text(render(statuses, {}, ["a", "b", "gone"], (), offsets))
+    rows = [line.split() for line in text.splitlines()]
+    assert ["host", "state", "uptime", "clock", "detail"] in rows
+    assert ["a", "running", "11", "s", "+12.3", "ms", "±0.4"] in rows
+    assert ["b", "running", "11", "s", "-2.0", "ms", "±0.3"] in rows
+    assert ["gone", "not", "answering", "-", "-"] in rows  # a stale estimate is not shown
+    assert "! clocks: a is 14.3 ms ±0.7 ahead of b: more than 5 ms" in text
+    near = _text(render(statuses, {}, ["a", "b"], (), {"a": ClockOffset(1_000_000, 50_000), "b": ClockOffset(0, 0)}))
+    assert "clocks: a is 1.0 ms ±0.1 ahead of b (the largest difference between two hosts" in near
+    assert "!" not in near
+    far = _text(render({"a": snapshot(1)}, {}, ["a"], (), {"a": ClockOffset(-3_600_000_000_000, 250_000)}))
+    assert ["a", "running", "11", "s", "-3600.0", "s", "±0.2", "ms"] in [line.split() for line in far.splitlines()]
+    assert "clocks:" not in far  # one host: no difference to show
+
+
+def test_report_has_each_hosts_clock_offset_and_bound():
+    offsets = {"a": ClockOffset(250 * MS, 400_000), "b": ClockOffset(-2 * MS, 300_000)}
+    doc = report({"a": snapshot(1), "b": snapshot(1, host="b")}, {"a": snapshot(0)}, ["a", "b", "c"], ["n"], offsets)
+    doc = json.loads(json.dumps(doc, allow_nan=False))
+    hosts = {h["host"]: h for h in doc["hosts"]}
+    assert (hosts["a"]["clock_offset_ns"], hosts["a"]["clock_uncertainty_ns"]) == (250 * MS, 400_000)
+    assert (hosts["b"]["clock_offset_ns"], hosts["b"]["clock_uncertainty_ns"]) == (-2 * MS, 300_000)
+    assert hosts["c"] == {
+        "host": "c",
+        "answering": False,
+        "clock_offset_ns": None,
+        "clock_uncertainty_ns": None,
+        "rates": {},
+        "status": None,
+    }
+    assert hosts["a"]["rates"]["heading"] == {"in": {"imu": 100.0, "odom": 10.0}, "out": {"pose": 10.0}}
+    assert hosts["b"]["status"]["uptime_s"] == 11.0
+    assert doc["clock_spread"] == {
+        "ahead": "a",
+        "behind": "b",
+        "offset_ns": 252 * MS,
+        "uncertainty_ns": 700_000,
+        "warn_above_ns": 5 * MS,
+        "warn": True,
+    }
+    assert doc["pipeline"] == "toy" and doc["notes"] == ["n"]
+
+
+def test_runner_status_carries_the_hosts_clock(tmp_path: Path):
+    from rover.cli.registry import BUILTINS
+    from rover.pipeline.validation import load_and_check
+    from rover.runtime.runner import Runner
+
+    (tmp_path / "toy.yaml").write_text(PIPELINE)
+    runner = Runner(load_and_check(tmp_path / "toy.yaml", BUILTINS), "a")
+    before = time.time_ns()
+    status = runner.status()
+    after = time.time_ns()
+    assert status.clock_ns is not None and before <= status.clock_ns <= after
+    assert status.sent_at == status.clock_ns / 1e9
+    assert HostStatus.from_json(status.to_json()).clock_ns == status.clock_ns
+
+
 def test_local_endpoint():
     assert local_endpoint("tcp/0.0.0.0:7447") == "tcp/127.0.0.1:7447"
     assert local_endpoint("tcp/[::]:7447") == "tcp/[::1]:7447"
     assert local_endpoint("tcp/192.168.1.2:7447") == "tcp/192.168.1.2:7447"
 
 
+MS = 1_000_000
+"""nanoseconds"""
+
+
+def shifted(offset_ns: int) -> Callable[[], int]:
+    """A wall clock `offset_ns` ahead of this machine's."""
+    return lambda: time.time_ns() + offset_ns
+
+
+@contextlib.contextmanager
+def serve_status(port: int, clocks: dict[str, Callable[[], int]]) -> Iterator[None]:
+    """A router listening on `port`, answering the status of each host in `clocks` (a second later at
+    each query), read at the moment it answers from that host's clock, as `Runner.status` does."""
+    session = open_session(SessionSpec(listen=[f"tcp/127.0.0.1:{port}"], label="status"))
+    queryables = []
+    for host, clock in clocks.items():
+        queries = itertools.count()
+
+        def answer(query: zenoh.Query, host: str = host, clock: Callable[[], int] = clock, n=queries) -> None:
+            query.reply(status_key("toy", host), replace(snapshot(next(n), host=host), clock_ns=clock()).to_json())
+
+        queryables.append(session.declare_queryable(status_key("toy", host), answer))
+    try:
+        yield
+    finally:
+        for queryable in queryables:
+            queryable.undeclare()
+        session.close()
+
+
 @pytest.fixture
 def host_a() -> Iterator[int]:
-    """A router listening on a free loopback port, answering host a's status, a second later at each query."""
+    """Host a's status on a free loopback port, its clock 250 ms ahead of this machine's."""
     port = free_port()
-    queries = itertools.count()
-    session = open_session(SessionSpec(listen=[f"tcp/127.0.0.1:{port}"], label="a"))
-
-    def answer(query: zenoh.Query) -> None:
-        query.reply(status_key("toy", "a"), snapshot(next(queries)).to_json())
-
-    queryable = session.declare_queryable(status_key("toy", "a"), answer)
-    try:
+    with serve_status(port, {"a": shifted(250 * MS)}):
         yield port
-    finally:
-        queryable.undeclare()
-        session.close()
 
 
 def test_query_status_returns_the_hosts_answer(host_a):
     payloads = query_status("toy", [f"tcp/127.0.0.1:{host_a}"], 5)
-    assert [HostStatus.from_json(p) for p in payloads] == [snapshot(0)]
+    assert [replace(HostStatus.from_json(p), clock_ns=None) for p in payloads] == [snapshot(0)]
 
 
 def test_client_tries_every_endpoint_and_stays_open(host_a):
@@ -214,6 +363,47 @@ def test_client_tries_every_endpoint_and_stays_open(host_a):
         assert [HostStatus.from_json(p).uptime_s for p in client.query()] == [10.0]
         assert [HostStatus.from_json(p).uptime_s for p in client.query()] == [11.0]
         assert client.errors == 0
+
+
+def test_client_measures_each_hosts_clock_offset():
+    """Hosts whose clocks run 250 ms ahead and 100 ms behind this machine's, over real Zenoh: each
+    offset is measured within the bound the client states, and so is their difference."""
+    port = free_port()
+    with (
+        serve_status(port, {"a": shifted(250 * MS), "b": shifted(-100 * MS)}),
+        StatusClient("toy", [f"tcp/127.0.0.1:{port}"], 5) as client,
+    ):
+        for _ in range(3):
+            statuses, notes = client.poll()
+            assert sorted(statuses) == ["a", "b"] and notes == []
+        offsets = client.clocks.best()
+    for host, true_ns in (("a", 250 * MS), ("b", -100 * MS)):
+        got = offsets[host]
+        assert abs(got.offset_ns - true_ns) <= got.uncertainty_ns + 1 * MS, (host, got)
+        assert got.uncertainty_ns < 100 * MS, (host, got)  # tight enough to tell the clocks apart
+    spread = clock_spread(offsets)
+    assert spread is not None and (spread.ahead, spread.behind) == ("a", "b") and spread.too_far
+    assert abs(spread.offset_ns - 350 * MS) <= spread.uncertainty_ns + 1 * MS
+    text = _text(render(statuses, {}, ["a", "b"], (), offsets))
+    assert re.search(r"^\s*a\s+running\s+12 s\s+\+2[45]\d\.\d ms ±\d+\.\d\s*$", text, re.M), text
+    assert re.search(r"^\s*b\s+running\s+12 s\s+-(99|10\d)\.\d ms ±\d+\.\d\s*$", text, re.M), text
+    assert re.search(r"^! clocks: a is 3[45]\d\.\d ms ±\d+\.\d ahead of b: more than 5 ms", text, re.M), text
+
+
+def test_a_host_without_clock_is_noted():
+    port = free_port()
+    session = open_session(SessionSpec(listen=[f"tcp/127.0.0.1:{port}"], label="old"))
+    queryable = session.declare_queryable(
+        status_key("toy", "old"), lambda q: q.reply(status_key("toy", "old"), snapshot(host="old").to_json())
+    )
+    try:
+        with StatusClient("toy", [f"tcp/127.0.0.1:{port}"], 5) as client:
+            statuses, notes = client.poll()
+            assert list(statuses) == ["old"] and client.clocks.best() == {}
+    finally:
+        queryable.undeclare()
+        session.close()
+    assert notes == ["host old does not send its clock (an older rover): its offset is unknown"]
 
 
 def test_nothing_listening_is_a_transport_error_naming_the_endpoints():
@@ -247,6 +437,24 @@ def test_cli_once_prints_hosts_and_operators(host_a, tmp_path: Path):
     assert "not answering" in proc.stdout
     assert "heading" in proc.stdout and "replay" in proc.stdout
     assert "100.0" in proc.stdout  # the rate between the two snapshots
+    assert re.search(r"^\s*host\s+state\s+uptime\s+clock\s+detail\s*$", proc.stdout, re.M), proc.stdout
+    assert re.search(r"^\s*a\s+running\s+11 s\s+\+2[45]\d\.\d ms ±\d+\.\d\s*$", proc.stdout, re.M), proc.stdout
+
+
+def test_cli_json_has_each_hosts_clock_offset(host_a, tmp_path: Path):
+    pipeline = tmp_path / "toy.yaml"
+    pipeline.write_text(PIPELINE)
+    proc = run_rover(
+        "status", str(pipeline), "--set", f"port={host_a}", "--once", "--interval", "0.05", "--json", timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    hosts = {h["host"]: h for h in doc["hosts"]}
+    a = hosts["a"]
+    assert abs(a["clock_offset_ns"] - 250 * MS) <= a["clock_uncertainty_ns"] + 1 * MS, a
+    assert a["status"]["host"] == "a" and a["rates"]["heading"]["in"] == {"imu": 100.0, "odom": 10.0}
+    assert hosts["b"]["answering"] is False and hosts["b"]["clock_offset_ns"] is None
+    assert doc["clock_spread"] is None  # one host answering
 
 
 def test_cli_with_nothing_listening_is_one_line_and_status_2(tmp_path: Path):

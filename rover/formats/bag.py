@@ -121,18 +121,28 @@ class BagWriter:
         self._channels[topic] = (channel, typename)
         return channel
 
-    def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
-        """Append a decoded message or a Raw one, logged at its event time."""
+    def write(self, topic: str, msg: Any, stamp_ns: int, publish_ns: int | None = None) -> None:
+        """Append a decoded message or a Raw one, logged at its event time; `publish_ns` (default the
+        event time) is MCAP's publish time, which a live recording uses to flag a message that came late."""
         typename = msg.typename if isinstance(msg, Raw) else msg.__msgtype__
         try:
             channel = self._channel(topic, typename)
             self.count += 1
             self._writer.add_message(
-                channel, log_time=stamp_ns, data=serialize(msg, typename), publish_time=stamp_ns, sequence=self.count
+                channel,
+                log_time=stamp_ns,
+                data=serialize(msg, typename),
+                publish_time=stamp_ns if publish_ns is None else publish_ns,
+                sequence=self.count,
             )
         except OSError as exc:
             self.discard()
             raise _cannot_write(self.path, exc) from None
+
+    def add_metadata(self, name: str, values: dict[str, str]) -> None:
+        """A metadata record known only once the messages are written (what a live recording counted)."""
+        with self._or_discard():
+            self._writer.add_metadata(name, values)
 
     @property
     def closed(self) -> bool:

@@ -174,12 +174,17 @@ class Task:
             self.error = exc
             self.stop.set()
         finally:
-            cut = self.stop.is_set() or self.abort.is_set() or bool(self.cut_inputs)
+            cut = self.cut_short()
             self.release()  # first: sending the ends may wait on a congested link
             for out in self.outputs.values():
                 with contextlib.suppress(zenoh.ZError):
                     out.end(cut)
             self.done.set()
+
+    def cut_short(self) -> bool:
+        """Whether this task's outputs end before the end of its input: the run was aborted, or an input
+        was cut. A stop alone is not a cut: operators drain what their inputs sent before they end."""
+        return self.abort.is_set() or bool(self.cut_inputs)
 
     def undeclare(self) -> None:
         """Withdraw this task's publishers (and subscribers) before the session closes: a router
@@ -227,6 +232,12 @@ class SourceTask(Task):
     """Drives a source. Its items come in stamp order, so each stamp is also a promise on every port."""
 
     op: Source
+
+    def cut_short(self) -> bool:
+        """A file stopped before its end is cut; a live source (a device, a growing log) stopped by the
+        run's stop has simply ended: a live session ends when its sources are stopped."""
+        stopped = self.stop.is_set() and not self.op.is_live(self.op.params)
+        return super().cut_short() or stopped
 
     def run(self) -> None:
         clock = 0
@@ -581,6 +592,9 @@ class Runner:
         lost, lost_at = (dict(self.watch.lost), dict(self.watch.lost_at)) if self.watch is not None else ({}, {})
         nodes = self.pipeline.nodes
         cut = {nodes[t.node.spec.inputs[port].source].spec.host or "" for t in self.tasks for port in t.cut_inputs}
+        feeding = {nodes[w.source].spec.host for t in self.tasks for w in t.node.spec.inputs.values()}
+        for host in [h for h in lost if h in feeding and h not in cut and lost[h].reason.startswith("stopped")]:
+            del lost[host]  # stopped on purpose after every stream it sends here had ended: nothing is missing
         if lost or cut:
             if lost:
                 reason = describe_loss(links, me, lost, lost_at)
@@ -722,6 +736,7 @@ class Runner:
                     _described(task.error) if isinstance(task.error, Exception) else "",
                 )
             )
+        now_ns = time.time_ns()  # this host's clock as it answers: `rover status` measures its offset
         return HostStatus(
             self.pipeline.name,
             self.host or "",
@@ -729,8 +744,9 @@ class Runner:
             sorted(watch.waiting_for()) if watch else [],
             watch.lost_hosts() if watch else [],
             time.monotonic() - self.started,
-            time.time(),
+            now_ns / 1e9,
             operators,
+            now_ns,
         )
 
     def _answer_status(self, query: zenoh.Query) -> None:

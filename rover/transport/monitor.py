@@ -2,6 +2,9 @@
 
 The client connects to one reachable endpoint (explicit endpoints only, no scouting); that host's
 router forwards the query to every host of the pipeline, so one connection sees them all.
+
+Each query also measures every answering host's clock against this machine's (`StatusClient.poll`,
+`rover.runtime.status.clock_offset`): reported, not corrected.
 """
 
 from __future__ import annotations
@@ -10,12 +13,13 @@ import json
 import logging
 import re
 import time
+from dataclasses import dataclass
 from types import TracebackType
 
 import zenoh
 
 from rover.errors import TransportError
-from rover.runtime.status import status_selector
+from rover.runtime.status import Clocks, HostStatus, clock_offset, read_reply, status_selector
 from rover.transport.session import TlsFiles, tls_config
 
 log = logging.getLogger("rover.status")
@@ -29,6 +33,17 @@ def local_endpoint(endpoint: str) -> str:
     """A listen endpoint as a client reaches it: a wildcard address (0.0.0.0, [::]) becomes loopback."""
     match = re.match(r"^([a-z-]+/)(0\.0\.0\.0|\[::\])(:.*)$", endpoint)
     return f"{match[1]}{WILDCARDS[match[2]]}{match[3]}" if match else endpoint
+
+
+@dataclass(frozen=True)
+class Reply:
+    """One host's answer to a status query and when it travelled, on this machine's wall clock."""
+
+    payload: bytes
+    sent_ns: int
+    """just before the query went out"""
+    received_ns: int
+    """when this reply arrived"""
 
 
 def _client_config(endpoints: list[str], open_timeout_s: float, tls: TlsFiles | None = None) -> zenoh.Config:
@@ -62,6 +77,8 @@ class StatusClient:
         self.timeout_s = timeout_s
         self.errors = 0
         """error replies to the last query"""
+        self.clocks = Clocks()
+        """each host's clock offset from this machine's, measured by `poll`"""
         self._session = self._open()
 
     def _open(self) -> zenoh.Session:
@@ -83,9 +100,18 @@ class StatusClient:
 
     def query(self) -> list[bytes]:
         """Every host's status payload (possibly none); error replies are left out and counted in `errors`."""
-        payloads: list[bytes] = []
+        return [reply.payload for reply in self.query_timed()]
+
+    def query_timed(self) -> list[Reply]:
+        """`query`, each payload with this machine's wall clock as the query left and as it arrived.
+
+        The replies are taken from the channel one by one as they come, each stamped then (not when
+        the whole query ends); the time between the two stamps comes from the monotonic clock, so a
+        step of the wall clock during the query cannot make it negative."""
+        out: list[Reply] = []
         errors = 0
         try:
+            sent_ns, start = time.time_ns(), time.monotonic_ns()
             replies = self._session.get(
                 status_selector(self.pipeline),
                 target=zenoh.QueryTarget.ALL,
@@ -93,14 +119,32 @@ class StatusClient:
                 timeout=self.timeout_s,
             )
             for reply in replies:
+                received_ns = sent_ns + time.monotonic_ns() - start
                 if reply.ok is not None:
-                    payloads.append(reply.ok.payload.to_bytes())
+                    out.append(Reply(reply.ok.payload.to_bytes(), sent_ns, received_ns))
                 else:
                     errors += 1
         except zenoh.ZError as exc:
             raise TransportError(f"querying {', '.join(self.endpoints)}: {str(exc).split(' at /')[0]}") from None
         self.errors = errors
-        return payloads
+        return out
+
+    def poll(self) -> tuple[dict[str, HostStatus], list[str]]:
+        """Every answering host's status by host, and a note for each reply that could not be used
+        (as `collect`); each host's clock offset from this machine's goes into `clocks`."""
+        statuses: dict[str, HostStatus] = {}
+        notes: list[str] = []
+        for reply in self.query_timed():
+            status = read_reply(reply.payload, self.pipeline)
+            if isinstance(status, str):
+                notes.append(status)
+                continue
+            statuses[status.host] = status
+            if status.clock_ns is None:
+                notes.append(f"host {status.host} does not send its clock (an older rover): its offset is unknown")
+            else:
+                self.clocks.add(status.host, clock_offset(status.clock_ns, reply.sent_ns, reply.received_ns))
+        return statuses, notes
 
     def close(self) -> None:
         self._session.close()
