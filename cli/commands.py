@@ -141,8 +141,49 @@ def cmd_run(args: argparse.Namespace) -> int:
     from rover.pipeline.validation import load_and_check
     from rover.runtime.runner import run
 
-    pipeline = load_and_check(args.pipeline or default_pipeline(), BUILTINS, _overrides(args))
+    path = args.pipeline or default_pipeline()
+    if args.view is not None:
+        from rover.cli.view import load_with_view
+
+        return run(load_with_view(path, BUILTINS, _overrides(args), args.view, args.host), args.host)
+    pipeline = load_and_check(path, BUILTINS, _overrides(args))
     return run(pipeline, args.host)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    """`rover run` with the pipeline's `dataset_recorder` writing the session to `-o` (that operator's
+    `path` and `command` params, set here so every host still runs the same pipeline)."""
+    import shlex
+
+    from rover.formats.bag import check_output
+    from rover.pipeline.validation import load_and_check
+    from rover.runtime.runner import run
+
+    file = args.pipeline
+    overrides = _overrides(args)
+    pipeline = load_and_check(file, BUILTINS, overrides)
+    recorders = [n for n in pipeline.nodes.values() if n.spec.uses == "dataset_recorder"]
+    here = [n for n in recorders if args.host is None or n.spec.host == args.host]
+    if not here:
+        placed = "; ".join(f"{n.name!r} runs on host {n.spec.host}" for n in recorders)
+        raise BadInput(
+            f"{file}: no dataset_recorder operator{f' on host {args.host}' if args.host else ''}"
+            + (
+                f" ({placed}: record there)"
+                if placed
+                else ": add one wired to the CSI, IMU, odometry and rig sources, as pipelines/live.yaml does"
+            )
+        )
+    if len(here) > 1:
+        names = ", ".join(repr(n.name) for n in here)
+        raise BadInput(
+            f"{file}: several dataset_recorder operators ({names}): set their paths with --set NAME.path=FILE"
+        )
+    check_output(args.record_to, force=args.force)
+    name = here[0].name
+    overrides[f"{name}.path"] = args.record_to
+    overrides[f"{name}.command"] = shlex.join(["rover", *sys.argv[1:]])
+    return run(load_and_check(file, BUILTINS, overrides), args.host)
 
 
 def cmd_graph(args: argparse.Namespace) -> int:
@@ -157,13 +198,14 @@ def cmd_graph(args: argparse.Namespace) -> int:
 def cmd_status(args: argparse.Namespace) -> int:
     """Live state of a running multi-host pipeline, from its hosts' status queryables. The file is
     only parsed (not checked against the operator classes): a monitoring machine needs no operator code."""
+    import json
     import time
 
     from rich.console import Console
     from rich.live import Live
 
     from rover.pipeline.spec import endpoint_problem, parse, read_document
-    from rover.runtime.status import HostStatus, collect, render
+    from rover.runtime.status import HostStatus, render, report
     from rover.transport.monitor import StatusClient, local_endpoint
 
     for option, value in (("--interval", args.interval), ("--timeout", args.timeout)):
@@ -195,8 +237,11 @@ def cmd_status(args: argparse.Namespace) -> int:
     with StatusClient(spec.name, endpoints, args.timeout, tls) as client:
 
         def snapshot() -> tuple[dict[str, HostStatus], list[str]]:
-            statuses, notes = collect(client.query(), spec.name)
+            statuses, notes = client.poll()  # also measures each host's clock offset: client.clocks
             return statuses, notes + ([f"{client.errors} error replies"] if client.errors else [])
+
+        def as_json(current: dict[str, HostStatus], previous: dict[str, HostStatus], notes: list[str]) -> str:
+            return json.dumps(report(current, previous, expected, notes, client.clocks.best()), allow_nan=False)
 
         current, notes = snapshot()
         if not current:
@@ -206,14 +251,24 @@ def cmd_status(args: argparse.Namespace) -> int:
             time.sleep(args.interval)
             later, notes = snapshot()
             previous, current = current, {**current, **later}
-            Console().print(render(current, previous, expected, notes))
+            if args.json:
+                print(as_json(current, previous, notes))
+            else:
+                Console().print(render(current, previous, expected, notes, client.clocks.best()))
             return 0
-        with Live(render(current, previous, expected, notes), auto_refresh=False) as live:
+        if args.json:  # one line per refresh
+            print(as_json(current, previous, notes), flush=True)
             while True:  # until Ctrl-C: main() turns Interrupted into status 130
                 time.sleep(args.interval)
                 later, notes = snapshot()
                 previous, current = {**previous, **current}, later
-                live.update(render(current, previous, expected, notes), refresh=True)
+                print(as_json(current, previous, notes), flush=True)
+        with Live(render(current, previous, expected, notes, client.clocks.best()), auto_refresh=False) as live:
+            while True:  # until Ctrl-C: main() turns Interrupted into status 130
+                time.sleep(args.interval)
+                later, notes = snapshot()
+                previous, current = {**previous, **current}, later
+                live.update(render(current, previous, expected, notes, client.clocks.best()), refresh=True)
 
 
 def _names(args: argparse.Namespace, hosts: list[str]) -> dict[str, list[str]]:
@@ -663,8 +718,26 @@ def parser() -> argparse.ArgumentParser:
         help="same as --set timing_topic=TOPIC: also record the wall-clock timings in results.mcap "
         "(they are always in timing.json; recorded, they make results.mcap differ between identical runs)",
     )
+    p.add_argument(
+        "--view",
+        nargs="?",
+        const=8765,
+        type=int,
+        metavar="PORT",
+        help="also serve a live view to Foxglove on ws://127.0.0.1:PORT (default 8765; 0: any free port); "
+        "--set view.host=0.0.0.0 listens on every interface",
+    )
     _add_set(p)
     p.set_defaults(func=cmd_run)
+
+    p = command("record", help="run a live pipeline (or one host's share) and write the session as a dataset")
+    p.add_argument("pipeline", metavar="PIPELINE", help="a pipeline with a dataset_recorder operator")
+    p.add_argument("--host", help="run only this host's operators (the dataset_recorder's host)")
+    p.add_argument("-o", dest="record_to", metavar="DATASET.mcap", required=True, help="the dataset to write")
+    p.add_argument("--force", action="store_true", help="replace an existing dataset")
+    p.add_argument("--output", help="same as --set output=DIR (the run's own results)")
+    _add_set(p)
+    p.set_defaults(func=cmd_record)
 
     p = command("check", help="validate pipeline and setup files; report every problem as FILE:LINE:COL")
     p.add_argument("files", nargs="+", metavar="FILE")
@@ -708,6 +781,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--once", action="store_true", help="print one table (rates over --interval) and exit")
     p.add_argument("--interval", type=float, default=1.0, help="seconds between refreshes (default 1)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for a host to answer (default 5)")
+    p.add_argument("--json", action="store_true", help="print JSON (a line per refresh) instead of the table")
     p.set_defaults(func=cmd_status)
 
     p = command("convert", help="ROS 1/ROS 2 bags or a recording folder to a dataset")

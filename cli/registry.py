@@ -18,6 +18,7 @@ BUILTINS: dict[str, str] = {
     "recorder": "rover.drivers.recorder:Recorder",
     "dataset_recorder": "rover.drivers.dataset_recorder:DatasetRecorder",
     "run_outputs": "rover.drivers.run_outputs:RunOutputs",
+    "foxglove_view": "rover.drivers.foxglove_view:FoxgloveView",
     "ros2_subscribe": "rover.drivers.ros2:Ros2Subscribe",
     "ros2_publish": "rover.drivers.ros2:Ros2Publish",
 }

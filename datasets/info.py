@@ -10,7 +10,7 @@ from typing import Any
 
 from rover.errors import BadInput, SpecError
 from rover.formats.bag import BagReader, shown
-from rover.formats.dataset import SETUP_METADATA
+from rover.formats.dataset import RECORD_METADATA, SETUP_METADATA
 from rover.pipeline.yamlpos import safe_load_limited
 
 CSI_TYPE = "rover_msgs/msg/CsiFrame"
@@ -181,10 +181,23 @@ def render(info: DatasetInfo) -> str:
         lines.append("Direct-to-multipath power ratio of the tag-to-robot link (median over packets):")
         for tag, ratio in sim.direct_to_multipath_db.items():
             lines.append(f"  tag {tag}: {ratio:+.1f} dB{'  (NLOS)' if sim.nlos.get(tag) else ''}")
+    recorded = info.metadata.get(RECORD_METADATA, {}).get("yaml")
+    if recorded:
+        lines.append(_recorded(info.path, recorded))
     if info.setup:
         lines.append("Rig (rover.setup):")
         lines += [f"  {line}" for line in info.setup.strip().splitlines()]
     return "\n".join(lines) + "\n"
+
+
+def _recorded(path: str, text: str) -> str:
+    """One line on a live recording (metadata `rover.record`): how the session ended, what came late."""
+    record = _metadata_yaml(path, RECORD_METADATA, text)
+    late = record.get("late") or {}
+    if not isinstance(late, dict) or not all(isinstance(n, int) and not isinstance(n, bool) for n in late.values()):
+        raise BadInput(f"{path}: metadata record {RECORD_METADATA!r}: field late: a mapping of topic to a count")
+    counted = ", ".join(f"{topic} {n}" for topic, n in sorted(late.items())) if late else "none"
+    return f"Recorded live ({record.get('session', '?')} session); late messages: {counted}"
 
 
 def _tags_by_channel(setup: str | None) -> dict[int, int]:

@@ -33,6 +33,9 @@ class Node:
     context: RunContext = RunContext()
     ports: Ports = field(default_factory=lambda: Ports({}, {}))
     """the operator's ports with these params (`Operator.declared_ports`)"""
+    local: bool = False
+    """added by this process's command line (`rover run --view`), not by the file: the other hosts
+    do not know it, so it is left out of the digest (and reads only outputs of its own host)"""
 
     @property
     def name(self) -> str:
@@ -67,7 +70,8 @@ class Pipeline:
 
     def digest(self) -> str:
         """A short hash of the run's structure (name, hosts, placement, wiring): the hosts of one run
-        agree on it whatever their own variables (each has its own output folder, dataset path...)."""
+        agree on it whatever their own variables (each has its own output folder, dataset path...)
+        and whatever local nodes each added."""
         structure = [
             self.name,
             sorted(self.spec.hosts),
@@ -80,6 +84,7 @@ class Pipeline:
                     sorted((p, o.type) for p, o in n.ports.outputs.items()),  # params may name them
                 ]
                 for n in sorted(self.nodes.values(), key=lambda n: n.name)
+                if not n.local
             ],
         ]
         return hashlib.sha256(json.dumps(structure).encode()).hexdigest()[:16]
@@ -410,8 +415,14 @@ def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -
             )
 
 
-def check(spec: PipelineSpec, builtins: Mapping[str, str], problems: list[Diagnostic] | None = None) -> Pipeline:
-    """Resolve operators (short names through `builtins`), params and wires; raise SpecError with every problem."""
+def check(
+    spec: PipelineSpec,
+    builtins: Mapping[str, str],
+    problems: list[Diagnostic] | None = None,
+    local: Collection[str] = (),
+) -> Pipeline:
+    """Resolve operators (short names through `builtins`), params and wires; raise SpecError with every problem.
+    `local` names the operators this process added to the file's (`Node.local`)."""
     problems = list(problems or [])
     doc = spec.doc
     nodes: dict[str, Node] = {}
@@ -424,13 +435,31 @@ def check(spec: PipelineSpec, builtins: Mapping[str, str], problems: list[Diagno
             problems.append(doc.diag(("operators", op.name, "uses"), f"{exc}{hint}"))
             continue
         params = _params(doc, op, cls, problems)
-        nodes[op.name] = Node(op, cls, params, context, _ports(doc, op, cls, params, problems))
+        nodes[op.name] = Node(op, cls, params, context, _ports(doc, op, cls, params, problems), op.name in local)
     _check_ports(doc, nodes, spec.operators, problems)
     _check_cycles(doc, spec.operators, problems)
     _check_hosts(doc, spec, problems)
+    _check_local(spec, local, problems)
     if problems:
         raise SpecError(problems)
     return Pipeline(spec, nodes)
+
+
+def _check_local(spec: PipelineSpec, local: Collection[str], problems: list[Diagnostic]) -> None:
+    """A local node reads only outputs of its own host: no traffic between hosts, so neither the
+    digest nor the access rules (`rover.security.acl.flows`, which come from such traffic) change."""
+    for op in (spec.operators[name] for name in local if name in spec.operators):
+        for wire in op.inputs.values():
+            source = spec.operators.get(wire.source)
+            if source is not None and source.host and op.host and source.host != op.host:
+                problems.append(
+                    spec.doc.diag(
+                        ("operators",),
+                        f"operator {op.name!r} (added on host {op.host} by the command line) cannot read "
+                        f"{wire.text}: it is produced on host {source.host}",
+                        key=True,
+                    )
+                )
 
 
 def load_and_check(path: str | Path, builtins: Mapping[str, str], overrides: dict[str, Any] | None = None) -> Pipeline:
