@@ -35,3 +35,18 @@ def test_the_live_pipeline_reads_the_papers_devices_on_their_hosts():
     assert placed["create2"] == "base" and placed["slam"] == "laptop"
     sources = [n for n in pipeline.nodes.values() if not n.spec.inputs and n.spec.uses != "rig_source"]
     assert sources and all(issubclass(n.cls, Source) and n.cls.is_live(n.params) for n in sources), sources
+
+
+def test_the_docs_ros2_base_variant_checks(tmp_path):
+    """docs/live.md's `odom` block for a ROS 2 base, put in place of the Create 2's, passes the checks."""
+    docs = (PIPELINES[0].parent.parent / "docs" / "live.md").read_text()
+    snippet = docs.split("## A ROS 2 base", 1)[1].split("```yaml\n", 1)[1].split("```", 1)[0]
+    text = PIPELINES[0].read_text()
+    create2 = '  odom:\n    uses: create2\n    host: base\n    params: {port: "${base_port}"}\n'
+    assert text.count(create2) == 1
+    variant = tmp_path / "live-ros2-base.yaml"
+    variant.write_text(text.replace(create2, snippet))
+    pipeline = load_and_check(variant, BUILTINS)
+    odom = pipeline.nodes["odom"]
+    assert odom.spec.uses == "ros2_subscribe" and odom.spec.host == "base"
+    assert odom.ports.outputs["odom"].type == "nav_msgs/msg/Odometry"
