@@ -10,13 +10,14 @@ import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from rover.formats.bag import BagWriter, iter_messages
-from rover.messages import header, make
+from rover.formats.bag import BagReader, BagWriter, iter_messages
+from rover.messages import deserialize, header, make
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
@@ -151,3 +152,50 @@ def simulated(tmp_path_factory):
         return cache[key]
 
     return get
+
+
+def strip_truth(source: Path, target: Path) -> None:
+    """The same dataset without /groundtruth/* and without the truth metadata."""
+    with BagReader(source) as reader:
+        meta = {k: v for k, v in reader.metadata().items() if k not in ("rover.truth", "rover.simulation")}
+        with BagWriter(target, metadata=meta) as bag:
+            for message in reader.messages(log_time_order=True):
+                if not message.topic.startswith("/groundtruth/"):
+                    bag.write(message.topic, deserialize(message.data, message.schema), message.log_time_ns)
+
+
+LAP = ("paper", 2, "trajectory.laps=1")
+"""one lap of the paper's scenario, seed 2: the dataset of `lap_runs`"""
+
+
+@dataclass
+class LapRun:
+    dataset: Path
+    output: Path
+    args: list[str]
+    """what the command line added to `rover run --dataset D --output O`"""
+    status: int
+    stderr: str
+
+
+@pytest.fixture(scope="session")
+def lap_runs(tmp_path_factory, simulated) -> dict[str, LapRun]:
+    """`rover run` of the default pipeline on one lap of `paper` (seed 2), side by side (one core each):
+    "with" on the dataset, "without" on a copy without its ground truth and with the timings recorded.
+    Shared by the end-to-end test on ground truth and the window model's test (its SLAM inputs)."""
+    dataset = simulated(*LAP)
+    root = tmp_path_factory.mktemp("lap-runs")
+    blind = root / "blind.mcap"
+    strip_truth(dataset, blind)
+    inputs = {"with": dataset, "without": blind}
+    window = ["--set", "slam.window=30"]  # the default, given on the command line: run.json records it
+    args = {"with": window, "without": [*window, "--timing-topic", "/rover/timing"]}
+    procs = {
+        name: popen_rover("run", "--dataset", str(path), "--output", str(root / name), *args[name])
+        for name, path in inputs.items()
+    }
+    runs = {}
+    for name, proc in procs.items():
+        _stdout, stderr = proc.communicate(timeout=600)
+        runs[name] = LapRun(inputs[name], root / name, args[name], proc.returncode, stderr)
+    return runs

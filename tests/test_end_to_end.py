@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import popen_rover, read_bag, reference_data, run_rover, wait_for_file
+from conftest import popen_rover, read_bag, reference_data, run_rover, strip_truth, wait_for_file
 
 from rover.cli.demo import simulator_version
 from rover.drivers.run_outputs import TAG_COLUMNS
-from rover.formats.bag import BagReader, BagWriter, read_metadata
+from rover.formats.bag import BagWriter, read_metadata
 from rover.geometry import wrap_angle
 from rover.messages import deserialize
 
@@ -58,46 +58,30 @@ def test_the_demo_beats_the_papers_figures(tmp_path, simulated):
     assert {"/rover/pose", "/rover/path", "/rover/tags", "/rover/aoa", "/rover/slam/diagnostics"} <= topics
 
 
-def strip_truth(source: Path, target: Path) -> None:
-    """The same dataset without /groundtruth/* and without the truth metadata."""
-    with BagReader(source) as reader:
-        meta = {k: v for k, v in reader.metadata().items() if k not in ("rover.truth", "rover.simulation")}
-        with BagWriter(target, metadata=meta) as bag:
-            for message in reader.messages(log_time_order=True):
-                if not message.topic.startswith("/groundtruth/"):
-                    bag.write(message.topic, deserialize(message.data, message.schema), message.log_time_ns)
-
-
-def test_ground_truth_never_reaches_the_estimate(tmp_path, simulated):
-    dataset = simulated("paper", 2, "trajectory.laps=1")
-    blind = tmp_path / "blind.mcap"
-    strip_truth(dataset, blind)
-    inputs = {"with": dataset, "without": blind}
-    # The default window, given on the command line: the same results, and run.json records it.
-    timings = {"with": [], "without": ["--timing-topic", "/rover/timing"]}
-    runs = {  # side by side: one core each
-        name: popen_rover(
-            "run", "--dataset", str(path), "--output", str(tmp_path / name), "--set", "slam.window=30", *timings[name]
-        )
-        for name, path in inputs.items()
-    }
-    for name, path in inputs.items():
-        _stdout, stderr = runs[name].communicate(timeout=600)
-        assert runs[name].returncode == 0, stderr
-        out, timing = tmp_path / name, timings[name]
-        recorded = {t for t, _s, _d in read_bag(out / "results.mcap")}
-        assert ("/rover/timing" in recorded) == bool(timing)
-        run = json.loads((out / "run.json").read_text())
-        assert run["status"] == "complete" and run["reason"] == ""
-        assert run["dataset"] == str(path.resolve()) and run["pipeline"].endswith("pipeline.yaml")
-        assert run["command_line"] == {
-            "vars": {"dataset": str(path), "output": str(out), **({"timing_topic": "/rover/timing"} if timing else {})},
+def test_ground_truth_never_reaches_the_estimate(lap_runs):
+    """The same lap with and without its ground truth: the same estimates to the byte; the default
+    window given on the command line gives the same results, and run.json records it."""
+    for run in lap_runs.values():
+        assert run.status == 0, run.stderr
+        recorded = {t for t, _s, _d in read_bag(run.output / "results.mcap")}
+        timing = "--timing-topic" in run.args
+        assert ("/rover/timing" in recorded) == timing
+        record = json.loads((run.output / "run.json").read_text())
+        assert record["status"] == "complete" and record["reason"] == ""
+        assert record["dataset"] == str(run.dataset.resolve()) and record["pipeline"].endswith("pipeline.yaml")
+        assert record["command_line"] == {
+            "vars": {
+                "dataset": str(run.dataset),
+                "output": str(run.output),
+                **({"timing_topic": "/rover/timing"} if timing else {}),
+            },
             "params": {"slam.window": 30},
         }
+    seen, blind = lap_runs["with"].output, lap_runs["without"].output
     for name in ("trajectory.tum", "trajectory_live.tum", "tags.csv"):
-        assert (tmp_path / "with" / name).read_bytes() == (tmp_path / "without" / name).read_bytes(), name
-    assert (tmp_path / "with" / "metrics.json").exists()
-    assert not (tmp_path / "without" / "metrics.json").exists()
+        assert (seen / name).read_bytes() == (blind / name).read_bytes(), name
+    assert (seen / "metrics.json").exists()
+    assert not (blind / "metrics.json").exists()
 
 
 def test_an_empty_dataset_is_a_clean_run_with_empty_outputs(tmp_path, simulated):

@@ -35,7 +35,8 @@ COVARIANCE_FLOOR = 1e-12
 @dataclass(frozen=True)
 class SlamParams(WindowSettings):
     batch: bool = False
-    """solve the whole run at once at its end (a reference for the sliding window), no live output"""
+    """solve the whole run at once at its end (a reference for the sliding window), no live output,
+    with the program's CVXPY specification (operators/slam/window_model.py)"""
     path_every_s: PositiveFloat = 10.0
     """event time between path messages (the last one, at the end, is complete)"""
     wheel: bool = True
@@ -116,6 +117,10 @@ class Slam(Operator):
         if self.params.batch:
             settings["window"] = 2**31
         self.window = SlidingWindow(WindowSettings(**settings))
+        if self.params.batch:  # one solve of the whole run: the CVXPY model, the program as specified
+            from rover.operators.slam.window_model import WindowModel  # cvxpy only when asked for
+
+            self.window.program_type = WindowModel
         self.pending: dict[int, list[Any]] = {}
         self.channels: dict[int, int] = {}
         self.finals_sent = 0

@@ -20,6 +20,7 @@ The distances in the weights have a floor (no tag is closer than `min_range_m` t
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
@@ -29,6 +30,7 @@ import scipy.sparse.linalg
 
 from rover.operators.slam.tag_search import Found, SearchSettings, search
 from rover.operators.slam.window_program import (
+    Program,
     Shape,
     SolverFailed,
     UpdateData,
@@ -250,7 +252,9 @@ class SlidingWindow:
     x: np.ndarray = field(default_factory=lambda: np.zeros(0))
     prior: Prior | None = None
     slots: int = 1
-    program: WindowProgram | None = None
+    program: Program | None = None
+    program_type: Callable[[Shape], Program] = WindowProgram
+    """the hand-compiled program (the hot path) or its CVXPY specification (`slam`'s batch mode)"""
     finals: list[tuple[int, float, float, float]] = field(default_factory=list)
     """(stamp, x, y, yaw) of the epochs that left the window, in order"""
     tag_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
@@ -577,7 +581,7 @@ class SlidingWindow:
         s = self.settings
         shape = self.shape
         if self.program is None or self.program.shape != shape:
-            self.program = WindowProgram(shape)
+            self.program = self.program_type(shape)
         self._search()  # first: a tag it finds changes the prior the program's numbers come from
         p = self._prior
         model = self._model()

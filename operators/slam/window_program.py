@@ -22,6 +22,7 @@ atan2 row and k_i its offset.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import clarabel
 import numpy as np
@@ -129,6 +130,14 @@ class UpdateData:
     """(rows,) hinge weight per slot"""
 
 
+class Program(Protocol):
+    """What the sliding window needs of a program: this module's compiled one or the CVXPY model."""
+
+    shape: Shape
+
+    def solve(self, d: UpdateData) -> tuple[np.ndarray, int]: ...
+
+
 class WindowProgram:
     """The conic program for one window shape; `solve` takes the numbers of one update."""
 
@@ -191,6 +200,8 @@ class WindowProgram:
         self.settings.max_iter = max_iter
         self.settings.tol_gap_abs = self.settings.tol_gap_rel = self.settings.tol_feas = tolerance
         self.solver: clarabel.DefaultSolver | None = None
+        self.objective = float("nan")
+        """the optimal value of the last solve (the quadratic and linear terms, no constant)"""
 
     def solve(self, d: UpdateData) -> tuple[np.ndarray, int]:
         """Minimize for one update; returns the states x and the iteration count."""
@@ -227,4 +238,5 @@ class WindowProgram:
         status = str(solution.status)
         if status not in ("Solved", "AlmostSolved"):
             raise SolverFailed(f"slam: Clarabel stopped with status {status}")
+        self.objective = float(solution.obj_val)
         return np.asarray(solution.x)[: self.shape.states], int(solution.iterations)
