@@ -44,6 +44,7 @@ def slam_inputs(run, seconds: float) -> dict[str, list]:
             if m.log_time_ns - start <= seconds * 1e9:
                 port, typename = topics[m.topic]
                 inputs[port].append(bag.decode(m, typename))
+    assert start is not None, "the run recorded no AoA"
     with BagReader(run.dataset) as bag:
         for m in bag.messages(["/odom"]):
             if m.log_time_ns - start <= seconds * 1e9:
