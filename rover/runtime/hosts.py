@@ -128,6 +128,7 @@ class HostWatch:
         return keys.host_token(self.pipeline, keys.HostKey(self.me, self.digest, self.zid, state))
 
     def declare(self, state: str) -> None:
+        log.debug("host %s: declares %s", self.me, state)
         self._tokens.append(self.session.liveliness().declare_token(self._key(state)))
 
     def say_bye(self, reason: str) -> None:
@@ -194,6 +195,7 @@ class HostWatch:
 
     def _put(self, parsed: keys.HostKey) -> None:
         host, zid = parsed.host, parsed.zid
+        log.debug("host %s: sees host %s %s (zid %s)", self.me, host, parsed.state, zid)
         if parsed.state == "done":
             if self.ready.get(host) == zid:
                 self.done.add(host)
@@ -219,6 +221,7 @@ class HostWatch:
         """A `ready` token withdrawn: a host gone after done, lost during the run, or (before the run)
         replaced by the next process that claims it; returns the host when it is lost."""
         host, zid = parsed.host, parsed.zid
+        log.debug("host %s: sees host %s withdraw %s (zid %s)", self.me, host, parsed.state, zid)
         if parsed.state != "ready":
             return None
         claims = self.claims.get(host, [])

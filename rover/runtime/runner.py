@@ -161,6 +161,8 @@ class Task:
         self.input_ns: int | None = None
         """latest stamp received on any input"""
         self.done = threading.Event()
+        self.ended_cut = False
+        """whether its outputs ended cut short (decided once, when the task ended)"""
         self.outputs = {
             port: Output(session, keys.port_key(pipeline, node.name, port), out.type)
             for port, out in node.ports.outputs.items()
@@ -174,7 +176,7 @@ class Task:
             self.error = exc
             self.stop.set()
         finally:
-            cut = self.cut_short()
+            cut = self.ended_cut = self.cut_short()
             self.release()  # first: sending the ends may wait on a congested link
             for out in self.outputs.values():
                 with contextlib.suppress(zenoh.ZError):
@@ -772,19 +774,29 @@ class Runner:
                 return
             self.state = "running"
             self._start_and_wait()
-            if not self.stop.is_set():  # a stopped host is not done: the others report it lost
+            stopped = self.stop.is_set()
+            # A host stopped before its input ended is not done: the others report it lost. One whose
+            # streams all ended (live sources stopped: the end of a live session) is done.
+            clean = not stopped or self._ended_cleanly()
+            log.debug("host %s: tasks ended (stopped: %s, every stream ended: %s)", self.host, stopped, clean)
+            if clean:
                 self.state = "finishing"
                 watch.declare("done")
-                watch.wait_done(wanted, self.stop)
+                if not stopped:
+                    watch.wait_done(wanted, self.stop)
                 behind = self.pipeline.hubs().get(self.host)
-                if behind and not self.stop.is_set():
-                    watch.wait_gone(behind, HUB_LINGER_S)
+                if behind and (stopped or not self.stop.is_set()):
+                    watch.wait_gone(behind, HUB_LINGER_S)  # their last messages pass through this one
             self.state = "done"
         finally:
             self._say_bye()
             if status is not None:
                 status.undeclare()
             watch.close()
+
+    def _ended_cleanly(self) -> bool:
+        """Every task of this host ended its outputs at the end of its input (none cut, nothing aborted)."""
+        return not self.abort.is_set() and not any(task.ended_cut for task in self.tasks)
 
     def _say_bye(self) -> None:
         """After a signal, tell the other hosts why this one leaves (once, as early as possible)."""
