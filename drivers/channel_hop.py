@@ -23,6 +23,8 @@ from rover.pipeline.params import Checked, NonNegativeInt, PositiveFloat
 
 log = logging.getLogger("rover.channel_hop")
 DEFAULT_COMMAND = "iw dev {interface} set channel {channel} HT20"
+PROMISE_MARGIN_S = 0.001
+"""kept off the promise of the next hop's time: the dwell is timed on the monotonic clock, stamps on the wall clock"""
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,9 @@ class ChannelHop(Source):
                         channel=channel,
                     ),
                 )
+                # the next hop comes a dwell from now at the earliest: promised at once, so the frames
+                # of this dwell are labelled as they come, not a dwell later
+                yield Watermark(now + int((self.params.dwell_s - PROMISE_MARGIN_S) * 1e9))
                 if stop.wait(self.params.dwell_s):
                     return
                 yield Watermark(time.time_ns())

@@ -10,7 +10,8 @@ from conftest import read_bag, run_rover
 
 from rover.drivers.channel_hop import ChannelHop, HopParams
 from rover.errors import BadInput
-from rover.messages import deserialize
+from rover.messages import deserialize, stamp_ns
+from rover.operator import Watermark
 
 SETUP = """\
 receiver: {antenna_positions_m: [[0, 0], [0.0258, 0], [0.0129, -0.0223]], interface: wlp1s0}
@@ -60,3 +61,20 @@ def test_custom_command_template_and_failures():
         ChannelHop(HopParams())
     with pytest.raises(BadInput, match="bad command template"):
         ChannelHop(HopParams(channels=[36], command="iw {nope}"))
+
+
+def test_each_hop_promises_the_next_one_a_dwell_later():
+    """After a hop stamped T, nothing comes before T + dwell (less a millisecond): the sweep may label
+    the frames of the dwell at once; the next hop keeps the promise."""
+    hop = ChannelHop(HopParams(channels=[36, 40], dwell_s=0.02, rounds=2), runner=lambda _argv: None)
+    items = list(hop.run(threading.Event()))
+    promised, hops = 0, 0
+    for item, after in zip(items, [*items[1:], None], strict=True):
+        if isinstance(item, Watermark):
+            promised = max(promised, item.stamp_ns)
+            continue
+        hops += 1
+        stamp = stamp_ns(item.msg)
+        assert stamp >= promised, "a hop came before what the last watermark promised"
+        assert isinstance(after, Watermark) and after.stamp_ns == stamp + 19_000_000
+    assert hops == 4
