@@ -1,9 +1,11 @@
 """`dataset_recorder`: a live session written as a Rover dataset, the file `rover record` makes.
 
 It writes what `rover convert` writes (rover/formats/dataset.py): `/csi` with the channel each frame
-was received on (a live frame's channel 0 becomes the channel `channel_hop` had tuned at its stamp,
-as `channel_sweep` reads it), `/imu/data`, `/odom`, the rig description and the provenance, so
-`rover run --dataset` replays the session. Every message that arrived is kept. One that arrived
+was received on (a live frame's channel 0 becomes the channel of the latest hop handed on before it,
+as `channel_sweep` labels it: the channel tuned at its stamp, unless the frame came late), `/imu/data`,
+`/odom`, the rig description and the provenance, so `rover run --dataset` replays the session. Every
+message that reached this operator is kept (what a full inbox dropped before it is counted by the
+runtime, in run.json). One that arrived
 after a message stamped later had been handed on (a live source or link that fell behind) is
 *late*: a replay, which goes by stamp, would take it earlier than the live run did. It is written
 at its stamp with MCAP's publish time set to the latest stamp before it (publish time equals log

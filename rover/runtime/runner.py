@@ -184,9 +184,9 @@ class Task:
             self.done.set()
 
     def cut_short(self) -> bool:
-        """Whether this task's outputs end before the end of its input: the run was aborted, or an input
-        was cut. A stop alone is not a cut: operators drain what their inputs sent before they end."""
-        return self.abort.is_set() or bool(self.cut_inputs)
+        """Whether this task's outputs end before the end of its input: it failed, the run was aborted,
+        or an input was cut. A stop alone is not a cut: operators drain what their inputs sent."""
+        return self.error is not None or self.abort.is_set() or bool(self.cut_inputs)
 
     def undeclare(self) -> None:
         """Withdraw this task's publishers (and subscribers) before the session closes: a router
@@ -595,8 +595,9 @@ class Runner:
         nodes = self.pipeline.nodes
         cut = {nodes[t.node.spec.inputs[port].source].spec.host or "" for t in self.tasks for port in t.cut_inputs}
         feeding = {nodes[w.source].spec.host for t in self.tasks for w in t.node.spec.inputs.values()}
-        for host in [h for h in lost if h in feeding and h not in cut and lost[h].reason.startswith("stopped")]:
-            del lost[host]  # stopped on purpose after every stream it sends here had ended: nothing is missing
+        ended = {h for h in lost if h in feeding and h not in cut and lost[h].reason.startswith("stopped")}
+        if ended == set(lost):  # every one stopped on purpose after the streams it sends here had ended
+            lost = {}
         if lost or cut:
             if lost:
                 reason = describe_loss(links, me, lost, lost_at)
