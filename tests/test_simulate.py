@@ -119,9 +119,13 @@ def test_the_imu_stands_still_then_turns_a_lap(short_run):
     assert abs(np.sum(gyro_z) / 200.0 - 3 * math.pi / 2) < math.radians(5), "a lap turns left at three corners"
 
 
+QUICK = ("--set", "trajectory.laps=1", "--set", "trajectory.speed_m_s=1.0")
+"""A 41 s run instead of 180 s: quicker to simulate, and still a moment to write (for the signal tests)."""
+
+
 def test_cli_round_trip_simulate_info_replay(tmp_path):
     out = tmp_path / "sim.mcap"
-    proc = run_rover("simulate", "--seed", "4", "--set", "trajectory.laps=1", "-o", str(out))
+    proc = run_rover("simulate", "--seed", "4", *QUICK, "-o", str(out))
     assert proc.returncode == 0, proc.stderr
     info = json.loads(run_rover("info", "--json", str(out)).stdout)
     assert info["simulation"]["scenario"] == "paper" and set(info["simulation"]["direct_to_multipath_db"]) <= {
@@ -150,10 +154,6 @@ def test_scenario_mistakes_are_reported():
         load_scenario("paper", {"trajectory.sped_m_s": "1"})
     with pytest.raises(SpecError, match="receiver.range_m: expected float"):
         load_scenario("paper", {"receiver.range_m": "far"})
-
-
-QUICK = ("--set", "trajectory.laps=1", "--set", "trajectory.speed_m_s=1.0")
-"""A 41 s run instead of 180 s: quicker to simulate, and still a moment to write (for the signal tests)."""
 
 
 def test_an_output_that_is_a_directory_is_one_line_before_any_work(tmp_path, capsys):
