@@ -251,8 +251,10 @@ class Lab:
         _run("ip", "-n", self.switch, "link", "set", host, "up")
 
     def loss(self, percent: int, hosts: Iterable[str] | None = None) -> None:
-        """Drop `percent` % of every host's outgoing packets on its eth0, at random (nftables
-        `numgen random mod 100 < N`, with a counter); 0 removes the rule."""
+        """Drop `percent` % of every host's outgoing IPv4 packets on its eth0, at random (nftables
+        `numgen random mod 100 < N`, with a counter); 0 removes the rule. IPv4 only: the lab's traffic
+        is IPv4, and the kernel's own IPv6 chatter on a fresh link (router solicitations, MLD) would
+        otherwise be dropped and counted too."""
         assert 0 <= percent <= 100 and percent == int(percent), percent
         for host in hosts if hosts is not None else self.addresses:
             script = f"table inet {LOSS_TABLE}\ndelete table inet {LOSS_TABLE}\n"
@@ -261,7 +263,7 @@ class Lab:
                     f"table inet {LOSS_TABLE} {{\n"
                     "  chain out {\n"
                     "    type filter hook output priority 0; policy accept;\n"
-                    f'    oifname "{IFACE}" numgen random mod 100 < {int(percent)} counter drop\n'
+                    f'    oifname "{IFACE}" meta nfproto ipv4 numgen random mod 100 < {int(percent)} counter drop\n'
                     "  }\n"
                     "}\n"
                 )
