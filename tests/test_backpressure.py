@@ -35,25 +35,37 @@ operators:
   record: {{uses: recorder, host: robot, inputs: {{imu: replay/imu}}, params: {{out: "{tmp_path / "out"}"}}}}
 """)
     proc = popen_rover("-v", "run", str(pipeline), "--host", "robot")
+    filled, seen = False, []
     try:
         with StatusClient("stall", [f"tcp/127.0.0.1:{port}"], WAIT_S) as client:
             deadline = time.monotonic() + WAIT_S
-            while True:
+            while proc.poll() is None and time.monotonic() < deadline:
                 ops = {o.name: o for r in client.query() for o in HostStatus.from_json(r).operators}
-                if "slow" in ops and ops["slow"].queue == STALL_INBOX:
+                if "slow" in ops:
+                    seen.append((ops["slow"].queue, ops["slow"].queue_high))
+                # Full once: the replay waits from then on. The queue shows 8 or 7: 7 when the stalled
+                # consumer took its first message after the inbox filled (the replay, woken only once
+                # the queue drains to half, still waits).
+                if "slow" in ops and ops["slow"].queue_high == STALL_INBOX:
+                    filled = True
                     break
-                assert proc.poll() is None and time.monotonic() < deadline, "the stalled inbox never filled"
-            sent = []
-            for _ in range(20):
-                ops = {o.name: o for r in client.query() for o in HostStatus.from_json(r).operators}
-                sent.append(ops["replay"].sent.get("imu", 0))
-            shown = run_rover("status", str(pipeline), "--once", "--interval", "0.2")
+            if not filled:
+                proc.kill()
+            else:
+                sent, queued = [], set()
+                for _ in range(20):
+                    ops = {o.name: o for r in client.query() for o in HostStatus.from_json(r).operators}
+                    sent.append(ops["replay"].sent.get("imu", 0))
+                    queued.add(ops["slow"].queue)
+                shown = run_rover("status", str(pipeline), "--once", "--interval", "0.2")
     finally:
         release.touch()
         _out, err = proc.communicate(timeout=WAIT_S)
+    assert filled, f"the stalled inbox never filled: (queue, high water) first {seen[:3]}, last {seen[-3:]}\n{err}"
     assert shown.returncode == 0, shown.stderr
     assert all(word in shown.stdout for word in ("robot", "running", "replay", "slow", "record")), shown.stdout
     assert max(sent) <= 1 + STALL_INBOX, f"the replay ran ahead of its stalled consumer: sent {sent}"
+    assert queued <= {STALL_INBOX - 1, STALL_INBOX}, f"the stalled inbox held {queued}"
     assert proc.returncode == 0, err
     assert "slow: in imu=4000" in err
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 4000
