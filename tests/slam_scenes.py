@@ -7,10 +7,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rover.operators.slam.sliding_window import Edge, SlidingWindow, WindowSettings
+from rover.operators.slam.sliding_window import Edge, SlidingWindow, WindowSettings, bias_jacobian
 
 EXACT_COVARIANCE = np.diag([1e-8, 1e-8, 1e-10, 1e-10])
 """[dv, dp] covariance of an exact odometry edge (velocity first, as the Preintegration message)"""
+EXACT_IMU = {"accel_bias": False}
+"""WindowSettings for tests about something else than the IMU: this odometry has no bias, and bias
+states would leave the scale to the bearings (less sharp than exact odometry)"""
 
 
 @dataclass
@@ -48,12 +51,17 @@ def true_angle(sc: Scene, k: int, tag: int) -> float:
     return math.atan2(d[1], d[0]) - sc.yaw[k]
 
 
-def edge(sc: Scene, k: int) -> Edge:
+def edge(sc: Scene, k: int, bias: np.ndarray | None = None) -> Edge:
+    """The exact odometry from epoch k-1 to k, plus what an accelerometer `bias` ([body x, body y,
+    world x, world y], m/s^2) adds to it."""
     dt = sc.t[k] - sc.t[k - 1]
     delta = np.concatenate(
         [sc.velocity[k] - sc.velocity[k - 1], sc.position[k] - sc.position[k - 1] - sc.velocity[k - 1] * dt]
     )
-    return Edge(float(dt), delta, EXACT_COVARIANCE)
+    jacobian = bias_jacobian(sc.yaw[k - 1], sc.yaw[k], float(dt))
+    if bias is not None:
+        delta = delta + jacobian @ bias
+    return Edge(float(dt), delta, EXACT_COVARIANCE, jacobian)
 
 
 def angles(sc: Scene, noise_deg: float = 0.0, outliers: float = 0.0, seed: int = 0) -> list[tuple[int, float]]:
@@ -70,9 +78,16 @@ def angles(sc: Scene, noise_deg: float = 0.0, outliers: float = 0.0, seed: int =
 
 
 def estimate(
-    sc: Scene, settings: WindowSettings, measured: list[tuple[int, float]], std_deg: float, update_every: int = 1
+    sc: Scene,
+    settings: WindowSettings,
+    measured: list[tuple[int, float]],
+    std_deg: float,
+    update_every: int = 1,
+    bias: np.ndarray | None = None,
+    levelled_std_m_s2: float = 0.0,
 ) -> tuple[SlidingWindow, np.ndarray]:
-    """Run the window over the scene; returns it and the robot positions as finally estimated."""
+    """Run the window over the scene (its odometry with an accelerometer `bias`, see `edge`);
+    returns it and the robot positions as finally estimated."""
     w = SlidingWindow(settings)
     for k, (tag, angle) in enumerate(measured):
         w.add_epoch(
@@ -81,7 +96,8 @@ def estimate(
             [tag + 1],
             np.array([angle]),
             np.array([math.radians(std_deg)]),
-            edge(sc, k) if k else None,
+            edge(sc, k, bias) if k else None,
+            levelled_std_m_s2=levelled_std_m_s2,
         )
         if k % update_every == 0 or k == len(measured) - 1:
             w.update()

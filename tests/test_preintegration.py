@@ -13,7 +13,7 @@ from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
 from rover.geometry import wrap_angle, yaw_from_quaternion
 from rover.messages import deserialize, header, make
-from rover.operators.preintegration.operator import Preintegration, rpy_matrix
+from rover.operators.preintegration.operator import Preintegration, PreintegrationParams, rpy_matrix
 
 EPOCH_NS = 400_000_000
 
@@ -125,3 +125,117 @@ def test_duplicates_out_of_order_and_gaps_are_counted(run, caplog):
     assert op.drops == {"duplicate IMU samples": 1, "IMU samples out of order": 1}
     assert "gap(s) in the IMU stream" in caplog.text
     assert len(out) > 10
+
+
+# -- synthetic IMU streams: bias, turns in place, a level floor (issue 18) -----------------------------
+
+RATE_HZ = 200
+G_M_S2 = 9.80665
+
+
+def vec3(v) -> object:
+    return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def stream(seconds: float, gyro, force, start_ns: int = T0_NS) -> list[tuple[int, object]]:
+    """IMU samples at RATE_HZ: gyro (rad/s) and specific force (m/s^2, body frame, gravity included)
+    as functions of the time since `start_ns`."""
+    out = []
+    for k in range(int(seconds * RATE_HZ)):
+        t = k / RATE_HZ
+        stamp = start_ns + round(t * 1e9)
+        msg = make(
+            "sensor_msgs/msg/Imu",
+            header=header(stamp, "imu_link"),
+            angular_velocity=vec3(gyro(t)),
+            linear_acceleration=vec3(force(t)),
+        )
+        out.append((stamp, msg))
+    return out
+
+
+STILL_S = 1.5
+"""the still start the preintegration levels on"""
+
+
+def turning(speed_m_s: float, rate_rad_s: float, bias=(0.0, 0.0, 0.0), gyro_bias=(0.0, 0.0, 0.0), seconds=6.0):
+    """Still for STILL_S, then turning at `rate_rad_s` while moving forward at `speed_m_s` (0: on the
+    spot): the body feels speed * rate sideways. An accelerometer `bias` throughout; a gyro bias
+    from the moment the robot moves (what the still start could not have estimated)."""
+    bias, gyro_bias = np.asarray(bias), np.asarray(gyro_bias)
+
+    def gyro(t):
+        moving = t >= STILL_S
+        return np.array([0.0, 0.0, rate_rad_s * moving]) + gyro_bias * moving
+
+    def force(t):
+        return np.array([0.0, speed_m_s * rate_rad_s * (t >= STILL_S), G_M_S2]) + bias
+
+    return stream(seconds, gyro, force)
+
+
+def test_a_turn_in_place_is_flagged_and_an_arc_at_the_same_rate_is_not():
+    bias = (0.03, -0.02, 0.01)  # 3 mg: levelling on the still start removes it
+    on_the_spot = feed(Preintegration(), turning(0.0, 0.6, bias), epoch_ns=100_000_000)
+    arc = feed(Preintegration(), turning(0.3, 0.6, bias), epoch_ns=100_000_000)
+    moving = [o for o in on_the_spot if o.start.sec * 10**9 + o.start.nanosec >= T0_NS + STILL_S * 1e9]
+    assert moving and all(o.turning_in_place for o in moving)
+    assert not any(o.turning_in_place for o in arc)
+    assert not any(o.turning_in_place for o in on_the_spot if o not in moving), "standing still is not turning"
+
+
+def dead_reckoning(out) -> np.ndarray:
+    p, v = np.zeros(2), np.zeros(2)
+    for o in out:
+        p = p + v * o.dt + [o.delta_position.x, o.delta_position.y]
+        v = v + [o.delta_velocity.x, o.delta_velocity.y]
+    return p
+
+
+def test_on_a_level_floor_a_roll_gyro_bias_does_not_tilt_gravity_into_the_motion():
+    """Standing still for 20 s with a 0.05 deg/s roll-rate bias appearing after the start: integrated
+    in 3-D it tilts the attitude and gravity leaks into the motion (metres); planar, nothing moves."""
+    samples = turning(0.0, 0.0, gyro_bias=(math.radians(0.05), 0.0, 0.0), seconds=20.0)
+    planar = dead_reckoning(feed(Preintegration(), samples))
+    tilting = dead_reckoning(feed(Preintegration(PreintegrationParams(planar=False)), samples))
+    assert np.linalg.norm(planar) < 1e-6
+    assert np.linalg.norm(tilting) > 1.0
+
+
+def test_the_bias_jacobian_gives_what_a_bias_does_to_the_deltas():
+    """The same arc with and without an accelerometer bias that appears once the robot moves (so
+    levelling cannot remove it): the deltas differ by the message's Jacobian times the bias."""
+    bias = np.array([0.02, -0.03, 0.0])
+    plain = feed(Preintegration(), turning(0.3, 0.4), epoch_ns=100_000_000)
+    samples = turning(0.3, 0.4)
+    biased_samples = []
+    for stamp, msg in samples:
+        if stamp >= T0_NS + STILL_S * 1e9:
+            f = msg.linear_acceleration
+            msg = make(
+                "sensor_msgs/msg/Imu",
+                header=msg.header,
+                angular_velocity=msg.angular_velocity,
+                linear_acceleration=vec3(np.array([f.x, f.y, f.z]) + bias),
+            )
+        biased_samples.append((stamp, msg))
+    biased = feed(Preintegration(), biased_samples, epoch_ns=100_000_000)
+    compared = 0
+    for a, b in zip(plain, biased, strict=True):
+        if a.start.sec * 10**9 + a.start.nanosec < T0_NS + STILL_S * 1e9:
+            continue
+        jacobian = np.asarray(a.accel_bias_jacobian).reshape(6, 3)
+        moved = np.array(
+            [
+                b.delta_velocity.x - a.delta_velocity.x,
+                b.delta_velocity.y - a.delta_velocity.y,
+                b.delta_velocity.z - a.delta_velocity.z,
+                b.delta_position.x - a.delta_position.x,
+                b.delta_position.y - a.delta_position.y,
+                b.delta_position.z - a.delta_position.z,
+            ]
+        )
+        np.testing.assert_allclose(moved, jacobian @ bias, atol=1e-12)
+        assert a.accel_bias_std > 0 and a.levelling_std > 0
+        compared += 1
+    assert compared > 30

@@ -101,16 +101,17 @@ def hessian(shape: Shape, d: UpdateData, x: np.ndarray) -> np.ndarray:
     h[np.ix_(prior, prior)] += d.prior_info
     for k, info in enumerate(d.velocity_info):
         h[4 * k + 2 : 4 * k + 4, 4 * k + 2 : 4 * k + 4] += info
-    for e, (lmat, chol) in enumerate(zip(d.edge_l, d.edge_chol, strict=True)):
-        span = np.arange(4 * e, 4 * e + 8)
-        h[np.ix_(span, span)] += lmat.T @ np.linalg.solve(chol @ chol.T, lmat)
+    for e, (lmat, chol, jb) in enumerate(zip(d.edge_l, d.edge_chol, d.edge_bias, strict=True)):
+        span = np.concatenate([np.arange(4 * e, 4 * e + 8), shape.bias_index])
+        full = np.concatenate([lmat, jb], axis=1)
+        h[np.ix_(span, span)] += full.T @ np.linalg.solve(chol @ chol.T, full)
     rows = rows_at(shape, d.a)
     quadratic = np.abs(rows @ x + d.offset) < d.huber_m
     return h + rows[quadratic].T @ rows[quadratic]
 
 
 def test_the_model_is_dpp_and_reused_for_its_shape():
-    shape = Shape(epochs=3, slots=2, tags=2)
+    shape = Shape(epochs=3, slots=2, tags=2, biases=4)
     model = WindowModel(shape)
     assert model.problem.is_dpp()
     assert {p.name() for p in model.problem.parameters()} >= {"R", "c", "dt", "delta", "k", "M", "w"}

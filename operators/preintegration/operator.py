@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -42,6 +42,18 @@ class PreintegrationParams(Checked):
     """accelerometer bias left unknown (1 sigma): a drift the noise densities alone do not show"""
     gyro_bias_rad_s: NonNegativeFloat = math.radians(0.005)
     """gyro bias left after the stationary estimate (1 sigma)"""
+    planar: bool = True
+    """the robot moves on a level floor: it turns only about the vertical it was levelled to at the
+    start, so the gyro's roll and pitch rates are left out (their bias left after the still start,
+    about 0.005 deg/s, would otherwise tilt gravity into the motion: 1.7 mg after 20 s, metres of
+    drift within a minute). Off for a platform that tilts (a drone, a handheld)"""
+    turn_in_place_rad_s: PositiveFloat = 0.3
+    """an interval turning at least this fast (mean yaw rate) ..."""
+    still_speed_m_s: PositiveFloat = 0.05
+    """... whose horizontal specific force (body frame, levelled at the start) implies at most this
+    speed (centripetal force / yaw rate) is flagged a turn in place: a robot arcing at speed feels
+    v * yaw rate sideways, one turning on the spot nothing (an IMU off the turning axis feels
+    yaw rate^2 * lever arm, which makes such a turn look like an arc: missed, never invented)"""
 
 
 def skew_batch(v: np.ndarray) -> np.ndarray:
@@ -104,10 +116,22 @@ class _Increment:
     """d(position)/d(accelerometer bias)"""
     dt: float = 0.0
     samples: int = 0
+    yaw: float = 0.0
+    """the integral of the yaw rate (rad)"""
+    force: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """the integral of the horizontal specific force in the levelled body frame (m/s)"""
 
     @classmethod
     def zero(cls) -> _Increment:
         return cls(np.eye(3), np.zeros(3), np.zeros(3), np.zeros((9, 9)), np.zeros((3, 3)), np.zeros((3, 3)))
+
+    def turning_in_place(self, min_rate_rad_s: float, max_speed_m_s: float) -> bool:
+        """Turning at least `min_rate_rad_s` on average with a sideways force implying at most
+        `max_speed_m_s` (see PreintegrationParams.still_speed_m_s)."""
+        if self.dt <= 0:
+            return False
+        rate = abs(self.yaw) / self.dt
+        return rate >= min_rate_rad_s and float(np.linalg.norm(self.force)) / self.dt <= max_speed_m_s * rate
 
     def with_biases(self, accel_bias: float, gyro_bias: float) -> np.ndarray:
         """The covariance including the unknown biases, which act coherently over the interval."""
@@ -147,6 +171,11 @@ class Preintegration(Operator):
         self.pending: list[tuple[int, np.ndarray, np.ndarray, int]] = []
         self.setup = RigInput()
         self.gaps = 0
+        self.level = np.eye(3)
+        self.levelling_std = 0.0
+        """the specific force levelling left at the start heading (1 sigma; 0: not levelled on a still start)"""
+        """the body frame levelled at the start (roll and pitch): turns in place are judged there"""
+        self.turns = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "setup":
@@ -195,6 +224,7 @@ class Preintegration(Operator):
             mean_f = np.array([0.0, 0.0, np.linalg.norm(mean_f)])
         else:
             self.bias = gyro.mean(axis=0)
+            self.levelling_std = self.params.accel_noise_m_s2_rthz / math.sqrt(max(span_s, 1e-3))
             log.info(
                 "preintegration: gyro bias %s rad/s and gravity %.3f m/s^2 from %.1f s standing still",
                 np.array2string(self.bias, precision=5),
@@ -204,6 +234,7 @@ class Preintegration(Operator):
         roll = math.atan2(mean_f[1], mean_f[2])
         pitch = math.atan2(-mean_f[0], math.hypot(mean_f[1], mean_f[2]))
         self.attitude = rpy_matrix(roll, pitch, 0.0)
+        self.level = self.attitude.copy()
         self.gravity = np.array([0.0, 0.0, -float(np.linalg.norm(mean_f))])
         dts = np.diff([s[0] for s in self.still]) / 1e9
         self.nominal_dt = float(np.median(dts)) if len(dts) else None
@@ -219,6 +250,9 @@ class Preintegration(Operator):
         starts = np.array([i[0] for i in intervals], dtype=np.int64)
         ends = np.array([i[3] for i in intervals], dtype=np.int64)
         w = np.array([i[1] for i in intervals]) - self.bias
+        if self.params.planar:  # only the rate about the levelled vertical (see PreintegrationParams.planar)
+            up = self.level[2]
+            w = np.outer(w @ up, up)
         f = np.array([i[2] for i in intervals])
         dt = (ends - starts) / 1e9
         if self.nominal_dt:
@@ -252,6 +286,8 @@ class Preintegration(Operator):
         inc.rotation = current
         inc.dt += float(dt.sum())
         inc.samples += len(dt)
+        inc.yaw += float(np.sum((w @ self.level[2]) * dt))
+        inc.force = inc.force + np.sum((f @ self.level.T)[:, 0:2] * dt[:, None], axis=0)
         self.attitude = self.epoch_attitude @ current
 
     def _propagate(self, cov: np.ndarray, steps, rotations, f, dt) -> np.ndarray:
@@ -292,6 +328,8 @@ class Preintegration(Operator):
             frame[3:6, 3:6] = r0
             frame[6:9, 6:9] = r0
             cov = frame @ inc.with_biases(self.params.accel_bias_m_s2, self.params.gyro_bias_rad_s) @ frame.T
+            turning = inc.turning_in_place(self.params.turn_in_place_rad_s, self.params.still_speed_m_s)
+            self.turns += turning
 
             def vec(v: np.ndarray) -> Any:
                 return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
@@ -312,6 +350,10 @@ class Preintegration(Operator):
                     delta_position=vec(dp),
                     covariance=cov.ravel(),
                     samples=inc.samples,
+                    accel_bias_jacobian=np.concatenate([r0 @ inc.bias_velocity, r0 @ inc.bias_position]).ravel(),
+                    accel_bias_std=self.params.accel_bias_m_s2,
+                    turning_in_place=turning,
+                    levelling_std=self.levelling_std,
                 ),
                 stamp,
             )
@@ -324,4 +366,5 @@ class Preintegration(Operator):
             log.warning(
                 "preintegration: the IMU stream ended during the stationary start (%d samples)", len(self.still)
             )
+        log.info("preintegration: %d interval(s) turning in place", self.turns)
         return ()

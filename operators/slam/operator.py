@@ -21,13 +21,15 @@ import numpy as np
 from rover.geometry import quaternion_from_yaw, yaw_from_quaternion
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings
+from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings, bias_jacobian
 from rover.pipeline.params import PositiveFloat
 
 log = logging.getLogger("rover.slam")
 
 PREINTEGRATION_XY = [3, 4, 6, 7]
 """velocity x/y and position x/y in the Preintegration covariance's [rotation, velocity, position]"""
+DELTA_XY = [0, 1, 3, 4]
+"""velocity x/y and position x/y in its accel_bias_jacobian's rows [velocity, position]"""
 COVARIANCE_FLOOR = 1e-12
 """smallest eigenvalue kept in an odometry covariance (m^2, (m/s)^2): keeps it positive definite"""
 
@@ -76,13 +78,22 @@ def candidates_of(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array([msg.angle_rad]), np.array([msg.std_rad]), np.array([-1])
 
 
-def edge_of(msg: Any) -> Edge:
-    """The x/y odometry of a Preintegration message."""
+def edge_of(msg: Any, bias_states: bool) -> Edge:
+    """The x/y odometry of a Preintegration message. With `bias_states` the window estimates the
+    accelerometer bias: the edge then carries how its deltas move with the body-frame and the
+    world-frame bias, and the covariance the preintegration added for an unknown bias is taken out."""
     delta = np.array([msg.delta_velocity.x, msg.delta_velocity.y, msg.delta_position.x, msg.delta_position.y])
     cov = np.asarray(msg.covariance, float).reshape(9, 9)[np.ix_(PREINTEGRATION_XY, PREINTEGRATION_XY)]
+    bias = np.zeros((4, 0))
+    if bias_states:
+        body = np.asarray(msg.accel_bias_jacobian, float).reshape(6, 3)[DELTA_XY]
+        cov = cov - msg.accel_bias_std**2 * body @ body.T
+        bias = bias_jacobian(yaw_of(msg.orientation_start), yaw_of(msg.orientation), float(msg.dt))
+        if body.any():  # the preintegration's own (a producer that does not say leaves the estimate)
+            bias[:, 0:2] = body[:, 0:2]
     values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
     cov = (vectors * np.maximum(values, COVARIANCE_FLOOR)) @ vectors.T
-    return Edge(float(msg.dt), delta, cov)
+    return Edge(float(msg.dt), delta, cov, bias)
 
 
 class Slam(Operator):
@@ -182,14 +193,25 @@ class Slam(Operator):
         start = msg.start.sec * 1_000_000_000 + msg.start.nanosec
         w = self.window
         if not w.epochs and not w.finals:
-            w.add_epoch(start, yaw_of(msg.orientation_start), edge=None, **self._take(start))
+            w.add_epoch(
+                start,
+                yaw_of(msg.orientation_start),
+                edge=None,
+                levelled_std_m_s2=float(msg.levelling_std),
+                **self._take(start),
+            )
         elif w.epochs and start != w.epochs[-1].stamp_ns:
             self.unchained += 1
         if msg.dt <= 0 or not np.isfinite(np.asarray(msg.covariance)).all():
             self.drop("odometry increments with no duration or a non-finite covariance")
             return
         w.add_epoch(
-            stamp, yaw_of(msg.orientation), edge=edge_of(msg), speed_m_s=self._speed_at(stamp), **self._take(stamp)
+            stamp,
+            yaw_of(msg.orientation),
+            edge=edge_of(msg, self.params.accel_bias),
+            turning_in_place=bool(msg.turning_in_place),
+            speed_m_s=self._speed_at(stamp),
+            **self._take(stamp),
         )
         if self.params.batch:
             return
@@ -309,8 +331,20 @@ class Slam(Operator):
             self.drop("AoAs after the last IMU epoch", sum(len(v) for v in self.pending.values()))
         if self.params.wheel and self.speed is None:
             log.warning(
-                "slam: no wheel odometry arrived: the speed came from the IMU alone, which leaves the "
-                "scale poorly determined (expect errors of metres; see the README's benchmarks)"
+                "slam: no wheel odometry arrived: the speed came from the IMU and the bearings alone "
+                "(set slam.wheel=false when that is intended; see the README's benchmarks for the accuracy)"
+            )
+        if w.biases:
+            std = np.sqrt(np.maximum(np.diag(w.bias_covariance), 0.0)) if w.bias_covariance.size else np.full(4, np.inf)
+            mg = 1e3 / 9.80665
+            bias = w.bias()
+            log.info(
+                "slam: accelerometer bias left by the preintegration: body (%.2f, %.2f) +- (%.2f, %.2f) mg, "
+                "world (%.2f, %.2f) +- (%.2f, %.2f) mg",
+                *(bias[0:2] * mg),
+                *(std[0:2] * mg),
+                *(bias[2:4] * mg),
+                *(std[2:4] * mg),
             )
         if self.unchained:
             log.warning(

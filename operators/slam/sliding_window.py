@@ -88,6 +88,19 @@ class WindowSettings(Checked):
     aoa_std_scale: PositiveFloat = 1.0
     """multiplies each AoA's std in the window (not in the search for a tag, which compares bearings
     spread over the whole run)"""
+    accel_bias: bool = True
+    """estimate what the IMU integration left of the accelerometer bias, as window states carried
+    through the marginalization: a bias fixed to the body (2D, turns with the robot) and one fixed to
+    the world (2D: gravity leaking through a tilt, or a body bias aligned away at the start heading)"""
+    accel_bias_std_m_s2: PositiveFloat = 0.03
+    """prior std of each of those biases (about 3 mg: MEMS IMUs of the paper's class are within it)"""
+    accel_bias_walk_m_s2_rts: NonNegativeFloat = 1e-4
+    """how fast they may wander (random walk, per square-root second)"""
+    turns_in_place: bool = True
+    """an epoch the preintegration flags as turning in place has zero velocity (off for a platform
+    that may rotate while it drifts, such as a drone)"""
+    zero_velocity_std_m_s: PositiveFloat = 0.02
+    """the velocity of such an epoch"""
 
 
 @dataclass
@@ -141,14 +154,16 @@ class Edge:
     dt: float
     delta: np.ndarray
     covariance: np.ndarray
+    bias_jacobian: np.ndarray = field(default_factory=lambda: np.zeros((4, 0)))
+    """(4, biases) how [dv, dp] move with the window's bias states (measured = true + J b)"""
     chol: np.ndarray = field(init=False, repr=False)
     """the covariance's Cholesky factor (the program's odometry rows are whitened by it)"""
     block: np.ndarray = field(init=False, repr=False)
-    """L'WL over [p_k, v_k, p_k+1, v_k+1]: the edge's information, for covariances"""
+    """M'WM over [p_k, v_k, p_k+1, v_k+1, biases], M = [L J]: the edge's information, for covariances"""
 
     def __post_init__(self) -> None:
         self.chol = np.linalg.cholesky(self.covariance)
-        lmat = edge_matrix(np.array([self.dt]))[0]
+        lmat = np.concatenate([edge_matrix(np.array([self.dt]))[0], self.bias_jacobian], axis=1)
         self.block = lmat.T @ np.linalg.solve(self.covariance, lmat)
 
 
@@ -169,6 +184,7 @@ class _Model:
     edge_chol: np.ndarray
     edge_whiten: np.ndarray
     edge_delta: np.ndarray
+    edge_bias: np.ndarray
     pairs: np.ndarray
     velocity_info: np.ndarray
     velocity_linear: np.ndarray
@@ -182,6 +198,20 @@ class Prior:
     info: np.ndarray
     mean: np.ndarray
     grad: np.ndarray
+
+
+def bias_jacobian(yaw_start: float, yaw_end: float, dt: float) -> np.ndarray:
+    """How an edge's [dv, dp] (x/y) move with [body-frame bias, world-frame bias] (4x4) for a robot
+    turning steadily from `yaw_start` to `yaw_end` in `dt` (Simpson's rule over the turn: for
+    odometry that does not say it itself)."""
+
+    def rot(yaw: float) -> np.ndarray:
+        return np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+
+    r0, rm, r1 = rot(yaw_start), rot(0.5 * (yaw_start + yaw_end)), rot(yaw_end)
+    body = np.concatenate([dt / 6 * (r0 + 4 * rm + r1), dt**2 / 6 * (r0 + 2 * rm)])
+    world = np.concatenate([dt * np.eye(2), 0.5 * dt**2 * np.eye(2)])
+    return np.concatenate([body, world], axis=1)
 
 
 def wrap(angle: np.ndarray) -> np.ndarray:
@@ -258,6 +288,8 @@ class SlidingWindow:
     finals: list[tuple[int, float, float, float]] = field(default_factory=list)
     """(stamp, x, y, yaw) of the epochs that left the window, in order"""
     tag_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    bias_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    """of the bias states, at the last update"""
     disagreement: dict[int, int] = field(default_factory=dict)
     """per tag slot: consecutive updates in which most of its bearings were Huber-active"""
     resets: int = 0
@@ -289,11 +321,21 @@ class SlidingWindow:
         return self.prior
 
     @property
+    def biases(self) -> int:
+        """Bias states: a body-frame and a world-frame accelerometer bias, 2D each (or none)."""
+        return 4 if self.settings.accel_bias else 0
+
+    @property
     def shape(self) -> Shape:
-        return Shape(len(self.epochs), self.slots, len(self.tag_ids))
+        return Shape(len(self.epochs), self.slots, len(self.tag_ids), self.biases)
 
     def tag_positions(self) -> np.ndarray:
-        return self.x[4 * len(self.epochs) :].reshape(-1, 2)
+        e = 4 * len(self.epochs)
+        return self.x[e : e + 2 * len(self.tag_ids)].reshape(-1, 2)
+
+    def bias(self) -> np.ndarray:
+        """The bias states' estimate: [body x, body y, world x, world y] (m/s^2), or none."""
+        return self.x[len(self.x) - self.biases :]
 
     def poses(self) -> list[tuple[int, float, float, float]]:
         """(stamp, x, y, yaw) of the epochs in the window, oldest first."""
@@ -310,10 +352,14 @@ class SlidingWindow:
         speed_m_s: float | None = None,
         jumps: np.ndarray | None = None,
         messages: list[Any] | None = None,
+        turning_in_place: bool = False,
+        levelled_std_m_s2: float = 0.0,
     ) -> None:
         """Append an epoch: the robot-frame AoAs seen there (one per tag, or (tags, K) candidates,
-        NaN-padded, with the jump combination each assumes), the odometry from the previous epoch
-        and, when there is wheel odometry, the forward speed."""
+        NaN-padded, with the jump combination each assumes), the odometry from the previous epoch,
+        when there is wheel odometry the forward speed, and whether the robot turned in place since.
+        The first epoch may say what levelling the IMU on a still start left of the bias there
+        (`levelled_std_m_s2`; 0: not levelled)."""
         s = self.settings
         n = len(tag_ids)
         candidates = yaw + np.asarray(angles_rad, float).reshape(n, -1 if n else 1)
@@ -325,14 +371,21 @@ class SlidingWindow:
         if not self.epochs:
             state = np.zeros(4)
             if self.prior is None:
-                self.prior = Prior(
-                    np.diag([s.gauge_std_m**-2] * 2 + [s.initial_velocity_std_m_s**-2] * 2), np.zeros(4), np.zeros(4)
-                )
+                info = np.diag([s.gauge_std_m**-2] * 2 + [s.initial_velocity_std_m_s**-2] * 2 + [0.0] * self.biases)
+                if self.biases:
+                    info[4:, 4:] = self._bias_prior(yaw, levelled_std_m_s2)
+                self.prior = Prior(info, np.zeros(len(info)), np.zeros(len(info)))
+                self.x = np.zeros(self.biases)
         else:
             if edge is None:
                 raise ValueError("an epoch after the first needs its odometry edge")
+            if not self.biases and edge.bias_jacobian.size:
+                edge = Edge(edge.dt, edge.delta, edge.covariance)
+            if edge.bias_jacobian.shape != (4, self.biases):
+                raise ValueError(f"an edge's bias Jacobian is {edge.bias_jacobian.shape}, not (4, {self.biases})")
             last = self.x[4 * (len(self.epochs) - 1) : 4 * len(self.epochs)]
-            state = np.concatenate([last[0:2] + last[2:4] * edge.dt + edge.delta[2:4], last[2:4] + edge.delta[0:2]])
+            delta = edge.delta - edge.bias_jacobian @ self.bias()
+            state = np.concatenate([last[0:2] + last[2:4] * edge.dt + delta[2:4], last[2:4] + delta[0:2]])
             self.edges.append(edge)
         tags = self.tag_positions()
         slots = []
@@ -350,13 +403,15 @@ class SlidingWindow:
                 kept.append((stamp_ns, candidates[j], raw_std[j], jumps[j]))
                 self.heard[t] = self.heard.get(t, 0) + 1
                 del kept[:-SEARCH_HISTORY]
-        self.x = np.concatenate([self.x[: 4 * len(self.epochs)], state, tags.ravel()])
+        self.x = np.concatenate([self.x[: 4 * len(self.epochs)], state, tags.ravel(), self.bias()])
         epoch = Epoch(
             stamp_ns, yaw, np.array(slots, dtype=int), candidates, candidate_std, jumps, messages=list(messages or [])
         )
         forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
         if s.nonholonomic:
             epoch.velocity_info = np.outer(side, side) / s.lateral_std_m_s**2
+        if turning_in_place and s.turns_in_place:
+            epoch.velocity_info = epoch.velocity_info + np.eye(2) / s.zero_velocity_std_m_s**2
         if speed_m_s is not None:
             var = s.wheel_speed_std_m_s**2 + (s.wheel_scale_std * speed_m_s) ** 2
             epoch.velocity_info = epoch.velocity_info + np.outer(forward, forward) / var
@@ -366,14 +421,27 @@ class SlidingWindow:
             self._marginalize_oldest()
         self.slots = max(len(e.tags) for e in self.epochs) or 1
 
+    def _bias_prior(self, yaw: float, levelled_std_m_s2: float) -> np.ndarray:
+        """Information on [body bias, world bias] at the start: each within `accel_bias_std_m_s2`, or,
+        when the IMU was levelled on a still start at heading `yaw`, the body bias so and the two
+        cancelling there (what levelling removed is exactly what the IMU felt at rest: c + R b = 0)."""
+        s = self.settings
+        if levelled_std_m_s2 <= 0:
+            return np.eye(4) / s.accel_bias_std_m_s2**2
+        rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+        both = np.concatenate([rot, np.eye(2)], axis=1)  # c + R b
+        info = both.T @ both / levelled_std_m_s2**2
+        info[0:2, 0:2] += np.eye(2) / s.accel_bias_std_m_s2**2
+        return info
+
     def _add_tag(self, tag_id: int, guess: np.ndarray) -> None:
-        self.tag_ids.append(tag_id)
+        """A new tag's prior, inserted after the other tags' (before the biases)."""
         p = self._prior
-        n = len(p.mean)
-        info = np.zeros((n + 2, n + 2))
-        info[:n, :n] = p.info
-        info[n:, n:] = np.eye(2) * self.settings.tag_prior_std_m**-2
-        self.prior = Prior(info, np.concatenate([p.mean, guess]), np.concatenate([p.grad, np.zeros(2)]))
+        at = 4 + 2 * len(self.tag_ids)
+        self.tag_ids.append(tag_id)
+        info = np.insert(np.insert(p.info, [at, at], 0.0, axis=0), [at, at], 0.0, axis=1)
+        info[at : at + 2, at : at + 2] = np.eye(2) * self.settings.tag_prior_std_m**-2
+        self.prior = Prior(info, np.insert(p.mean, [at, at], guess), np.insert(p.grad, [at, at], 0.0))
 
     # -- the model ------------------------------------------------------------------------------
 
@@ -523,7 +591,7 @@ class SlidingWindow:
     def _offsets(self, x: np.ndarray, epoch: np.ndarray, tag: np.ndarray) -> np.ndarray:
         """Robot-to-tag vectors b - mu per slot."""
         e = len(self.epochs)
-        tags = x[4 * e :].reshape(-1, 2)
+        tags = x[4 * e : 4 * e + 2 * len(self.tag_ids)].reshape(-1, 2)
         if len(tags) == 0:
             return np.zeros((len(epoch), 2))
         return tags[np.maximum(tag, 0)] - x[: 4 * e].reshape(-1, 4)[epoch, 0:2]
@@ -552,6 +620,7 @@ class SlidingWindow:
             edge_chol=chol,
             edge_whiten=np.linalg.inv(chol) if ne else chol,
             edge_delta=np.stack([e.delta for e in self.edges]) if ne else np.zeros((0, 4)),
+            edge_bias=np.stack([e.bias_jacobian for e in self.edges]) if ne else np.zeros((0, 4, self.biases)),
             pairs=4 * np.arange(ne)[:, None] + np.arange(8),
             velocity_info=np.stack([e.velocity_info for e in self.epochs]),
             velocity_linear=np.stack([e.velocity_linear for e in self.epochs]),
@@ -560,7 +629,8 @@ class SlidingWindow:
 
     def _cost(self, model: _Model, x: np.ndarray, residual: np.ndarray) -> float:
         """The true cost: odometry, wheel, prior, and the Huber loss of the angle residuals."""
-        r = np.einsum("nij,nj->ni", model.edge_l, x[model.pairs]) - model.edge_delta
+        bias = x[self.shape.bias_index]
+        r = np.einsum("nij,nj->ni", model.edge_l, x[model.pairs]) + model.edge_bias @ bias - model.edge_delta
         odometry = 0.5 * float(np.sum(np.einsum("nij,nj->ni", model.edge_whiten, r) ** 2))
         v = x[: 4 * len(self.epochs)].reshape(-1, 4)[:, 2:4]
         wheel = float(0.5 * np.einsum("ni,nij,nj->", v, model.velocity_info, v) - np.sum(model.velocity_linear * v))
@@ -595,6 +665,7 @@ class SlidingWindow:
             edge_l=model.edge_l,
             edge_chol=model.edge_chol,
             edge_delta=model.edge_delta,
+            edge_bias=model.edge_bias,
             huber_m=s.huber_sigma,
         )
         self._select(self.x)
@@ -698,9 +769,16 @@ class SlidingWindow:
         vals = [self._prior.info.ravel()]
         if self.edges:
             blocks = np.stack([e.block for e in self.edges])
-            idx = 4 * np.arange(len(self.edges))[:, None] + np.arange(8)
-            rows.append(np.repeat(idx[:, :, None], 8, axis=2).ravel())
-            cols.append(np.repeat(idx[:, None, :], 8, axis=1).ravel())
+            idx = np.concatenate(
+                [
+                    4 * np.arange(len(self.edges))[:, None] + np.arange(8),
+                    np.broadcast_to(shape.bias_index, (len(self.edges), shape.biases)),
+                ],
+                axis=1,
+            )
+            width = idx.shape[1]
+            rows.append(np.repeat(idx[:, :, None], width, axis=2).ravel())
+            cols.append(np.repeat(idx[:, None, :], width, axis=1).ravel())
             vals.append(blocks.ravel())
         vel = 4 * np.arange(shape.epochs)[:, None] + np.array([2, 3])
         rows.append(np.repeat(vel[:, :, None], 2, axis=2).ravel())
@@ -723,16 +801,17 @@ class SlidingWindow:
         )
 
     def _covariances(self, epoch, tag, residual, jb, filled) -> None:
-        nt = len(self.tag_ids)
+        nt, nb = len(self.tag_ids), self.biases
         e = 4 * len(self.epochs)
         info = self._information(epoch, tag, residual, jb, filled)
-        rhs = np.zeros((info.shape[0], 2 * nt))
-        rhs[e:, :] = np.eye(2 * nt)
+        rhs = np.zeros((info.shape[0], 2 * nt + nb))
+        rhs[e:, :] = np.eye(2 * nt + nb)
         try:
             cov = scipy.sparse.linalg.splu(info).solve(rhs)[e:]
         except RuntimeError:
-            cov = np.full((2 * nt, 2 * nt), np.inf)
+            cov = np.full((2 * nt + nb, 2 * nt + nb), np.inf)
         self.tag_covariance = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
+        self.bias_covariance = cov[2 * nt :, 2 * nt :]
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`)."""
@@ -753,14 +832,15 @@ class SlidingWindow:
         e = len(self.epochs)
         nt = len(self.tag_ids)
         x = self.x
-        own = np.concatenate([np.arange(4), 4 * e + np.arange(2 * nt)])
+        nb = self.biases
+        own = np.concatenate([np.arange(4), 4 * e + np.arange(2 * nt + nb)])
         p = self._prior
         info = p.info.copy()
         grad = p.info @ (x[own] - p.mean) + p.grad
         info[2:4, 2:4] += old.velocity_info
         grad[2:4] += old.velocity_info @ x[2:4] - old.velocity_linear
         if len(old.tags):
-            delta = x[4 * e :].reshape(-1, 2)[old.tags] - x[0:2]
+            delta = x[4 * e : 4 * e + 2 * nt].reshape(-1, 2)[old.tags] - x[0:2]
             r, jb = angle_residuals(delta, old.bearing, old.std, s.min_range_m)
             w = huber_weight(r, s.huber_sigma)
             for j, t in enumerate(old.tags):
@@ -779,14 +859,17 @@ class SlidingWindow:
         mean = x[own] - cov @ grad
         transfer = np.eye(4)
         transfer[0:2, 2:4] = edge.dt * np.eye(2)
-        jac = np.eye(4 + 2 * nt)
+        jac = np.eye(4 + 2 * nt + nb)
         jac[:4, :4] = transfer
+        jac[:4, 4 + 2 * nt :] = -edge.bias_jacobian[PV_FROM_VP]
         new_cov = jac @ cov @ jac.T
         new_cov[:4, :4] += edge.covariance[np.ix_(PV_FROM_VP, PV_FROM_VP)]
+        walk = 4 + 2 * nt + np.arange(nb)
+        new_cov[walk, walk] += s.accel_bias_walk_m_s2_rts**2 * edge.dt
         new_mean = jac @ mean
         new_mean[:4] += edge.delta[PV_FROM_VP]
         new_info = np.linalg.inv(new_cov)
-        self.prior = Prior(0.5 * (new_info + new_info.T), new_mean, np.zeros(4 + 2 * nt))
+        self.prior = Prior(0.5 * (new_info + new_info.T), new_mean, np.zeros(4 + 2 * nt + nb))
         self.finals.append((old.stamp_ns, float(x[0]), float(x[1]), old.yaw))
         self.final_xy[old.stamp_ns] = x[0:2].copy()
         self.left.append(old)

@@ -11,8 +11,10 @@ difference; `slam`'s `batch: true` solves with this model.
         + 1/2 sum_k v_k' W_k v_k                         wheel speed information per epoch
         + 1/2 |rho|^2                                    whitened odometry residuals
         + sum_i ( 1/2 n_i^2 + M t_i ) + sum_i w_i h_i    Huber split, cheirality hinge
-    s.t.  v_k+1 - v_k - C_e,v rho_e = dv_e               each odometry edge e = (k, k+1),
-          p_k+1 - p_k - dt_e v_k - C_e,p rho_e = dp_e    C_e the Cholesky factor of its covariance
+    s.t.  v_k+1 - v_k + J_e,v b - C_e,v rho_e = dv_e     each odometry edge e = (k, k+1),
+          p_k+1 - p_k - dt_e v_k + J_e,p b - C_e,p rho_e = dp_e
+                                                         C_e the Cholesky factor of its covariance,
+                                                         J_e how it moves with the bias states b
           |a_i'x + k_i - n_i| <= t_i                     each AoA slot i
           h_i >= 0,  h_i >= -g_i'x
 
@@ -68,6 +70,10 @@ class WindowModel:
         self.dt = cp.Parameter(max(edges, 1), name="dt")
         self.chol = [[cp.Parameter(max(edges, 1), name=f"C_{i}{j}") for j in range(4)] for i in range(4)]
         self.delta = cp.Parameter((max(edges, 1), 4), name="delta")
+        self.bias_jacobian = [
+            [cp.Parameter(max(edges, 1), name=f"J_{i}{j}") for j in range(shape.biases)] for i in range(4)
+        ]
+        bias = [x[int(j)] for j in shape.bias_index]
         self.a = [cp.Parameter(r, name=f"a_{j}") for j in range(width)]
         self.g = [cp.Parameter(r, name=f"g_{j}") for j in range(width)]
         self.k = cp.Parameter(r, name="k")
@@ -100,12 +106,19 @@ class WindowModel:
         if edges:
             before, after = np.arange(edges), np.arange(1, e)
             whitened = [sum(cp.multiply(self.chol[i][j], rho[:, j]) for j in range(4)) for i in range(4)]
+            drift = [
+                sum((cp.multiply(jb, b) for jb, b in zip(self.bias_jacobian[i], bias, strict=True)), 0)
+                for i in range(4)
+            ]
             for i in range(2):  # [dv, dp] per axis, as the edge's residual orders them
-                constraints.append(velocity[i][after] - velocity[i][before] - whitened[i] == self.delta[:, i])
+                constraints.append(
+                    velocity[i][after] - velocity[i][before] + drift[i] - whitened[i] == self.delta[:, i]
+                )
                 constraints.append(
                     position[i][after]
                     - position[i][before]
                     - cp.multiply(self.dt, velocity[i][before])
+                    + drift[2 + i]
                     - whitened[2 + i]
                     == self.delta[:, 2 + i]
                 )
@@ -132,12 +145,18 @@ class WindowModel:
                 for j in range(4):
                     self.chol[i][j].value = d.edge_chol[:, i, j]
             self.delta.value = d.edge_delta
+            for i, row in enumerate(self.bias_jacobian):
+                for j, jb in enumerate(row):
+                    jb.value = d.edge_bias[:, i, j]
         else:
             self.dt.value = np.zeros(1)
             for i in range(4):
                 for j in range(4):
                     self.chol[i][j].value = np.zeros(1)
             self.delta.value = np.zeros((1, 4))
+            for row in self.bias_jacobian:
+                for jb in row:
+                    jb.value = np.zeros(1)
         for j in range(len(self.a)):
             self.a[j].value = d.a[:, j]
             self.g[j].value = d.g[:, j]

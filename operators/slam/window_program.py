@@ -1,11 +1,12 @@
 """The convex program of one sliding-window update, built once per shape and re-solved with Clarabel.
 
 Variables z = [x, rho, n, t, h]: x the window's states (per epoch position and velocity in x/y,
-then the tags' positions); rho the whitened odometry residuals; per AoA slot a Huber split (n, t)
-and a cheirality slack h. The program is
+then the tags' positions, then the accelerometer bias states b shared by the window); rho the
+whitened odometry residuals; per AoA slot a Huber split (n, t) and a cheirality slack h. The program is
 
     min  0.5 x'Hx - c'x + 0.5 |rho|^2 + sum_i 0.5 huber_M(a_i'x + k_i) + sum_i hinge_i h_i
-    s.t. L_e x - C_e rho_e = y_e           (each odometry edge; C_e the Cholesky factor of its covariance)
+    s.t. L_e x + J_e b - C_e rho_e = y_e   (each odometry edge; C_e the Cholesky factor of its covariance,
+                                            J_e how its deltas move with the bias)
          h_i >= max(0, -g_i'x)
 
 with (H, c) the prior and huber_M(r) = min_n n^2 + 2M|r - n| written with |r - n| <= t, so the
@@ -64,10 +65,17 @@ class Shape:
     slots: int
     """AoA slots per epoch"""
     tags: int
+    biases: int = 0
+    """accelerometer bias states, after the tags (0: the bias is not estimated)"""
 
     @property
     def states(self) -> int:
-        return 4 * self.epochs + 2 * self.tags
+        return 4 * self.epochs + 2 * self.tags + self.biases
+
+    @property
+    def bias_index(self) -> np.ndarray:
+        """The bias states' columns."""
+        return 4 * self.epochs + 2 * self.tags + np.arange(self.biases)
 
     @property
     def rows(self) -> int:
@@ -90,8 +98,8 @@ def edge_matrix(dt: np.ndarray) -> np.ndarray:
 
 
 def prior_indices(shape: Shape) -> np.ndarray:
-    """The states the prior covers: the oldest epoch and every tag."""
-    return np.concatenate([np.arange(4), 4 * shape.epochs + np.arange(2 * shape.tags)])
+    """The states the prior covers: the oldest epoch, every tag and the biases."""
+    return np.concatenate([np.arange(4), 4 * shape.epochs + np.arange(2 * shape.tags + shape.biases)])
 
 
 def slot_columns(shape: Shape) -> np.ndarray:
@@ -119,6 +127,8 @@ class UpdateData:
     """(edges, 4, 4) Cholesky factors of the odometry covariances"""
     edge_delta: np.ndarray
     """(edges, 4) [dv, dp]"""
+    edge_bias: np.ndarray
+    """(edges, 4, biases) each edge residual's coefficients on the bias states"""
     a: np.ndarray
     """(rows, columns) Huber row coefficients at slot_columns"""
     offset: np.ndarray
@@ -170,11 +180,20 @@ class WindowProgram:
         edge = np.arange(ne)
         li, lj = L_PATTERN
         self.l_index = (li, lj)
+        nb = shape.biases
         odo_rows = np.concatenate(
-            [(4 * edge[:, None] + li).ravel(), np.repeat(4 * edge[:, None] + np.arange(4), 4, axis=1).ravel()]
+            [
+                (4 * edge[:, None] + li).ravel(),
+                np.repeat(4 * edge[:, None] + np.arange(4), 4, axis=1).ravel(),
+                np.repeat(4 * edge[:, None] + np.arange(4), nb, axis=1).ravel(),
+            ]
         )
         odo_cols = np.concatenate(
-            [(4 * edge[:, None] + lj).ravel(), (self.rho0 + 4 * edge[:, None] + np.tile(np.arange(4), 4)).ravel()]
+            [
+                (4 * edge[:, None] + lj).ravel(),
+                (self.rho0 + 4 * edge[:, None] + np.tile(np.arange(4), 4)).ravel(),
+                np.tile(shape.bias_index, 4 * ne),
+            ]
         )
         self.columns = slot_columns(shape)
         width = self.columns.shape[1]
@@ -217,6 +236,7 @@ class WindowProgram:
                 [
                     l_values.ravel(),
                     -d.edge_chol.reshape(len(d.edge_chol), 16).ravel(),
+                    d.edge_bias.ravel(),
                     d.a.ravel(),
                     -d.a.ravel(),
                     -d.g.ravel(),
