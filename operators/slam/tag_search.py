@@ -71,6 +71,9 @@ FREE_MARGIN_FACTOR = 2.0
 free choice per bearing, a wrong place finds more ways to fit"""
 SCORE_CHUNK = 4_000_000
 """residuals (hypotheses x bearings x candidates) scored at once"""
+RANGE_CHECK = np.array([1.5, 2 / 3])
+"""a found position's distance from the robot path scaled by these must cost the margin too: a
+place the bearings would fit as well farther out (a ghost at the edge of the search) is no place"""
 STEP_LIMIT_M = 5.0
 """a Gauss-Newton step longer than this is an unconstrained range, not a refinement"""
 
@@ -126,26 +129,39 @@ def _hypotheses(robot: np.ndarray, angles: np.ndarray, s: SearchSettings) -> np.
     return np.concatenate([q[ok], ray[np.isfinite(ray).all(axis=1)]])
 
 
+def _linearized(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float):
+    """At q: the capped score, each bearing's best candidate (-1 outlier), and the inliers'
+    residuals and Jacobians."""
+    r = _residuals(q[None], robot, angles, stds)[0]
+    best = np.argmin(r**2, axis=1)
+    rb = r[np.arange(len(r)), best]
+    inlier = np.abs(rb) < cap
+    d = q[None, :] - robot
+    range2 = np.maximum(np.sum(d**2, axis=1), 1e-6)
+    sb = stds[np.arange(len(r)), best]
+    jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (range2 * sb)[:, None]
+    score = float(np.minimum(rb**2, cap**2).sum())
+    return score, np.where(inlier, best, -1), jac[inlier], rb[inlier]
+
+
 def _refine(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float, steps: int = 5):
-    """Gauss-Newton on the inliers' best candidates from q; returns q, choice (-1 outlier), info."""
-    for _ in range(steps + 1):
-        r = _residuals(q[None], robot, angles, stds)[0]
-        best = np.argmin(r**2, axis=1)
-        rb = r[np.arange(len(r)), best]
-        inlier = np.abs(rb) < cap
-        d = q[None, :] - robot
-        range2 = np.maximum(np.sum(d**2, axis=1), 1e-6)
-        sb = stds[np.arange(len(r)), best]
-        jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (range2 * sb)[:, None]
-        jac, rb = jac[inlier], rb[inlier]
+    """Gauss-Newton on the inliers' best candidates from q, a step kept only when it lowers the
+    capped score (where the rays are nearly parallel a step can slide along them to a worse
+    place); returns q, choice (-1 outlier), info."""
+    score, choice, jac, rb = _linearized(q, robot, angles, stds, cap)
+    for _ in range(steps):
         info = jac.T @ jac
-        if inlier.sum() < 2 or np.linalg.cond(info) > 1e12:
+        if len(rb) < 2 or np.linalg.cond(info) > 1e12:
             break
         step = np.linalg.solve(info, jac.T @ rb)
         if not np.all(np.isfinite(step)) or np.linalg.norm(step) > STEP_LIMIT_M:
             break  # rays too parallel to pin the range: the hypothesis stays as triangulated
+        trial = _linearized(q - step, robot, angles, stds, cap)
+        if trial[0] > score:
+            break
         q = q - step
-    return q, np.where(inlier, best, -1), info
+        score, choice, jac, rb = trial
+    return q, choice, jac.T @ jac
 
 
 def by_combination(angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, combination: int):
@@ -210,6 +226,10 @@ def _search(robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: Searc
     best = float(_score(_residuals(position[None], robot_xy, angles, stds), s.cap_sigma)[0])
     elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(robot_xy, position, s)]
     margin = float(elsewhere.min() - best) if len(elsewhere) else math.inf
+    if (choice >= 0).any():  # the range must be settled too: half as far again out, or a third in
+        centre = robot_xy[choice >= 0].mean(axis=0)
+        moved = centre + np.outer(RANGE_CHECK, position - centre)
+        margin = min(margin, float(_scores(moved, robot_xy, angles, stds, s.cap_sigma).min() - best))
     inliers = float(np.mean(choice >= 0))
     seen = position[None, :] - robot_xy[choice >= 0]
     directions = np.arctan2(seen[:, 1], seen[:, 0])
