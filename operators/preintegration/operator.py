@@ -172,9 +172,9 @@ class Preintegration(Operator):
         self.setup = RigInput()
         self.gaps = 0
         self.level = np.eye(3)
+        """the body frame levelled at the start (roll and pitch): turns in place are judged there"""
         self.levelling_std = 0.0
         """the specific force levelling left at the start heading (1 sigma; 0: not levelled on a still start)"""
-        """the body frame levelled at the start (roll and pitch): turns in place are judged there"""
         self.turns = 0
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
