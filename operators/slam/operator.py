@@ -321,6 +321,9 @@ class Slam(Operator):
             return
         stamp = w.epochs[-1].stamp_ns
         if self.params.batch:
+            # the robot positions the tag search triangulates from are the solved ones, not dead
+            # reckoning: solve once without searching, then the update proper
+            w.update(search=False)
             yield from self._update(stamp)
         yield Emit("path", self._path(stamp), stamp)
         yield Emit("tags", self._tags(stamp), stamp)

@@ -646,13 +646,15 @@ class SlidingWindow:
 
     # -- one update -----------------------------------------------------------------------------
 
-    def update(self) -> Update:
-        """Re-solve the window: convex passes with reweighted distances, then Gauss-Newton on angles."""
+    def update(self, search: bool = True) -> Update:
+        """Re-solve the window: convex passes with reweighted distances, then Gauss-Newton on angles.
+        First, unless `search` is off, look for the tags waiting for their position."""
         s = self.settings
         shape = self.shape
         if self.program is None or self.program.shape != shape:
             self.program = self.program_type(shape)
-        self._search()  # first: a tag it finds changes the prior the program's numbers come from
+        if search:
+            self._search()  # first: a tag it finds changes the prior the program's numbers come from
         p = self._prior
         model = self._model()
         c = np.zeros(shape.states)
