@@ -200,15 +200,16 @@ class Prior:
     grad: np.ndarray
 
 
+def rotation(yaw: float) -> np.ndarray:
+    """The 2x2 rotation from the body's x/y to the world's at heading `yaw`."""
+    return np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+
+
 def bias_jacobian(yaw_start: float, yaw_end: float, dt: float) -> np.ndarray:
     """How an edge's [dv, dp] (x/y) move with [body-frame bias, world-frame bias] (4x4) for a robot
     turning steadily from `yaw_start` to `yaw_end` in `dt` (Simpson's rule over the turn: for
     odometry that does not say it itself)."""
-
-    def rot(yaw: float) -> np.ndarray:
-        return np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-
-    r0, rm, r1 = rot(yaw_start), rot(0.5 * (yaw_start + yaw_end)), rot(yaw_end)
+    r0, rm, r1 = rotation(yaw_start), rotation(0.5 * (yaw_start + yaw_end)), rotation(yaw_end)
     body = np.concatenate([dt / 6 * (r0 + 4 * rm + r1), dt**2 / 6 * (r0 + 2 * rm)])
     world = np.concatenate([dt * np.eye(2), 0.5 * dt**2 * np.eye(2)])
     return np.concatenate([body, world], axis=1)
@@ -428,8 +429,7 @@ class SlidingWindow:
         s = self.settings
         if levelled_std_m_s2 <= 0:
             return np.eye(4) / s.accel_bias_std_m_s2**2
-        rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-        both = np.concatenate([rot, np.eye(2)], axis=1)  # c + R b
+        both = np.concatenate([rotation(yaw), np.eye(2)], axis=1)  # c + R b
         info = both.T @ both / levelled_std_m_s2**2
         info[0:2, 0:2] += np.eye(2) / s.accel_bias_std_m_s2**2
         return info

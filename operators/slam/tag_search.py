@@ -147,7 +147,7 @@ def _linearized(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.n
 def _refine(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float, steps: int = 5):
     """Gauss-Newton on the inliers' best candidates from q, a step kept only when it lowers the
     capped score (where the rays are nearly parallel a step can slide along them to a worse
-    place); returns q, choice (-1 outlier), info."""
+    place); returns q, choice (-1 outlier), info, and the capped score there."""
     score, choice, jac, rb = _linearized(q, robot, angles, stds, cap)
     for _ in range(steps):
         info = jac.T @ jac
@@ -161,7 +161,7 @@ def _refine(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarr
             break
         q = q - step
         score, choice, jac, rb = trial
-    return q, choice, jac.T @ jac
+    return q, choice, jac.T @ jac, score
 
 
 def by_combination(angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, combination: int):
@@ -222,8 +222,7 @@ def _search(robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: Searc
     if len(q) == 0:
         return None
     score = _scores(q, robot_xy, angles, stds, s.cap_sigma)
-    position, choice, info = _refine(q[np.argmin(score)], robot_xy, angles, stds, s.cap_sigma)
-    best = float(_score(_residuals(position[None], robot_xy, angles, stds), s.cap_sigma)[0])
+    position, choice, info, best = _refine(q[np.argmin(score)], robot_xy, angles, stds, s.cap_sigma)
     elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(robot_xy, position, s)]
     margin = float(elsewhere.min() - best) if len(elsewhere) else math.inf
     if (choice >= 0).any():  # the range must be settled too: half as far again out, or a third in
