@@ -13,11 +13,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-import pytest
+# as the `rover` command does (cli/__init__.py): one OpenBLAS thread for the small matrices the
+# operators work on, in this process and the CLI subprocesses it starts; before numpy loads
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from rover.formats.bag import BagReader, BagWriter, iter_messages
-from rover.messages import deserialize, header, make
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from rover.formats.bag import BagReader, BagWriter, iter_messages  # noqa: E402
+from rover.messages import deserialize, header, make  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent

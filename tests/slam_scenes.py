@@ -100,6 +100,7 @@ def estimate(
             levelled_std_m_s2=levelled_std_m_s2,
         )
         if k % update_every == 0 or k == len(measured) - 1:
+            w.find_tags()
             w.update()
     final = np.array([f[1:3] for f in w.finals] + [p[1:3] for p in w.poses()])
     return w, final

@@ -7,7 +7,8 @@ import math
 from typing import Any
 
 import numpy as np
-from slam_scenes import EXACT_COVARIANCE, angles, edge, scene
+from slam_scenes import EXACT_COVARIANCE, angles, edge, scene, true_angle
+from test_jumps import burst_candidates
 
 from rover.geometry import quaternion_from_yaw
 from rover.messages import header, make
@@ -111,3 +112,40 @@ def test_no_odometry_at_all_and_bad_angles_are_counted(caplog):
     assert out == []
     assert "no epoch to estimate" in caplog.text
     assert op.drops == {"AoAs with a non-finite angle or std": 1}
+
+
+def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
+    """A tag whose bearings carry jump candidates: the operator searches for it after the epoch's
+    pose is out (one search per epoch at most, timed as `slam.search`), and finds it."""
+    sc = scene(seconds=15.0, tags=((3.0, 2.0),))
+    rng = np.random.default_rng(3)
+    std = math.radians(3.0)
+    aoas = []
+    for k in range(len(sc.t)):
+        jumps = rng.permutation(4)[None, :]
+        candidates = burst_candidates(true_angle(sc, k, 0), 2, jumps, std, rng)[0]
+        aoas.append(
+            make(
+                "rover_msgs/msg/Aoa",
+                header=header(stamp(sc, k), "base_link"),
+                tag_id=1,
+                channel=149,
+                angle_rad=float(candidates[0]),
+                std_rad=std,
+                packets=7,
+                candidate_angles_rad=candidates.tolist(),
+                candidate_stds_rad=[std] * 4,
+                candidate_powers=[0.25] * 4,
+                candidate_jumps=jumps[0].tolist(),
+            )
+        )
+    odometry = [preintegration(sc, k) for k in range(1, len(sc.t))]
+    out = run_operator(Slam(SlamParams(window=30, accel_bias=False)), {"aoa": aoas, "odometry": odometry})
+    searches = [(i, e) for i, e in enumerate(out) if e.port == "timing" and e.msg.stage == "slam.search"]
+    assert searches and all(e.msg.wall_s > 0 for _, e in searches)
+    pose_at = {e.stamp_ns: i for i, e in enumerate(out) if e.port == "pose"}
+    assert all(pose_at[e.stamp_ns] < i for i, e in searches), "the pose goes out before the search"
+    assert len({e.stamp_ns for _, e in searches}) == len(searches), "one search per epoch at most"
+    final = [e.msg for e in out if e.port == "tags"][-1].tags
+    assert [t.id for t in final if t.observable] == [1]
+    assert math.hypot(final[0].position.x - 3.0, final[0].position.y - 2.0) < 0.2

@@ -117,6 +117,7 @@ def run_with_jumps(carried: np.ndarray, seed: int = 0, update_every: int = 2):
             int(sc.t[k] * 1e9), float(sc.yaw[k]), [tag_id], candidates, stds, edge(sc, k) if k else None, jumps=jumps
         )
         if k % update_every == 0 or k == len(sc.t) - 1:
+            w.find_tags()
             w.update()
             t = w.tag_ids.index(1)
             trace.append(
@@ -204,8 +205,34 @@ def test_a_tag_waiting_longer_than_the_search_history_is_still_searched():
             jumps=jumps,
         )
         if k < n and k % 10 == 0:
-            w.update()  # searched while still: nothing settles
+            w.find_tags()  # searched while still: nothing settles
             assert not w.active[0]
-    w.update()  # one search that sees the whole drive
+    assert w.find_tags() == 1  # one search that sees the whole drive
     assert w.active[0] and w.found[0][1].combination == 1
     assert np.linalg.norm(w.tag_positions()[0] - sc.tags[0]) < 0.16
+
+
+def test_a_call_searches_at_most_its_limit_the_longest_waiting_first():
+    """Two tags with jump candidates wait unsearched, tag 1 heard more often; find_tags(limit=1)
+    searches tag 1 only, the next call tag 2, and a third finds nothing new to search."""
+    sc = scene(seconds=6.0, tags=((3.0, 2.0), (-1.0, 2.5)))
+    rng = np.random.default_rng(5)
+    w = SlidingWindow(WindowSettings(window=30, **EXACT_IMU))
+    for k in range(len(sc.t)):
+        tag = 0 if k % 3 else 1  # tag 1 at two epochs of three
+        jumps = rng.permutation(4)[None, :]
+        candidates = burst_candidates(true_angle(sc, k, tag), 1, jumps, JUMP_STD, rng)
+        w.add_epoch(
+            int(sc.t[k] * 1e9),
+            float(sc.yaw[k]),
+            [tag + 1],
+            candidates,
+            np.full(candidates.shape, JUMP_STD),
+            edge(sc, k) if k else None,
+            jumps=jumps,
+        )
+    one, two = w.tag_ids.index(1), w.tag_ids.index(2)
+    assert w.heard[one] > w.heard[two] >= w.search.min_bearings and not w.searched
+    assert w.find_tags(limit=1) == 1 and list(w.searched) == [one]
+    assert w.find_tags(limit=1) == 1 and sorted(w.searched) == sorted([one, two])
+    assert w.find_tags() == 0

@@ -13,7 +13,8 @@ import numpy as np
 from slam_scenes import scene
 from test_jumps import angle_gap_deg, burst_candidates
 
-from rover.operators.slam.tag_search import SearchSettings, by_combination, search
+from rover.operators.slam import tag_search
+from rover.operators.slam.tag_search import SearchSettings, _scores, by_combination, search
 
 STD = math.radians(3.0)
 TAG = np.array([2.0, 2.5])
@@ -151,3 +152,38 @@ def test_many_bearings_from_one_place_do_not_make_a_wrong_place_clear():
                 f"vs {free_cost(tag, robot, angles, stds):.0f} at the tag"
             )
     assert not wrong, "\n".join(wrong)
+
+
+def test_the_scores_are_the_documented_objective():
+    """The search's vectorized scoring equals its objective written plainly (free_cost), with
+    candidates NaN-padded, angles given beyond +-pi, and a position on a robot position."""
+    robot, yaw = straight_then_turn()
+    angles, stds, _ = bearings(robot, yaw, np.full(len(robot), 1))
+    angles[::3, 2:] = np.nan
+    angles[1::4] += 2 * np.pi * np.random.default_rng(1).integers(-2, 3, (len(angles[1::4]), 1))
+    stds = stds * np.random.default_rng(2).uniform(0.5, 2.0, stds.shape)
+    q = np.concatenate([np.random.default_rng(3).uniform(-3.0, 6.0, (50, 2)), TAG[None], robot[5:6]])
+    expected = [free_cost(p, robot, angles, stds) for p in q]
+    np.testing.assert_allclose(_scores(q, robot, angles, stds, 3.0), expected, rtol=1e-12, atol=1e-9)
+
+
+def test_a_tag_heard_long_is_scored_on_a_bounded_share_of_its_bearings(monkeypatch):
+    """400 bearings: the hypotheses are scored on score_bearings of them spread over the path (the
+    work of a search is bounded however long a tag waits), the winner refined on all of them."""
+    robot, yaw = straight_then_turn(n=400)
+    s = SearchSettings()
+    angles, stds, jumps = bearings(robot, yaw, np.full(len(robot), 2), seed=4)
+    scored: list[int] = []
+
+    def spy(q, robot_xy, *rest):
+        scored.append(len(robot_xy))
+        return _scores(q, robot_xy, *rest)
+
+    monkeypatch.setattr(tag_search, "_scores", spy)
+    found = search(robot, angles, stds, s, jumps)
+    assert scored and max(scored) <= s.score_bearings
+    assert found is not None and found.clear(s) and found.combination == 2
+    assert len(found.choice) == len(robot) and found.inliers >= s.min_inliers
+    assert np.linalg.norm(found.position - TAG) < 0.2
+    inlier = found.choice >= 0
+    assert np.all(jumps[np.flatnonzero(inlier), found.choice[inlier]] == 2)

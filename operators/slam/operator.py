@@ -32,6 +32,8 @@ DELTA_XY = [0, 1, 3, 4]
 """velocity x/y and position x/y in its accel_bias_jacobian's rows [velocity, position]"""
 COVARIANCE_FLOOR = 1e-12
 """smallest eigenvalue kept in an odometry covariance (m^2, (m/s)^2): keeps it positive definite"""
+SEARCHES_PER_EPOCH = 1
+"""tag searches after each epoch's update at most: bounds the work per epoch however many tags wait"""
 
 
 @dataclass(frozen=True)
@@ -220,6 +222,18 @@ class Slam(Operator):
         if self.last_path_ns is None or stamp - self.last_path_ns >= self.params.path_every_s * 1e9:
             self.last_path_ns = stamp
             yield Emit("path", self._path(stamp), stamp)
+        yield from self._find_tags(stamp)
+
+    def _find_tags(self, stamp: int):
+        """One tag search after this epoch's outputs are out (its pose need not wait for it)."""
+        started = time.perf_counter()
+        if self.window.find_tags(limit=SEARCHES_PER_EPOCH):
+            wall_s = time.perf_counter() - started
+            yield Emit(
+                "timing",
+                make("rover_msgs/msg/Timing", header=header(stamp, "world"), stage="slam.search", wall_s=wall_s),
+                stamp,
+            )
 
     def _speed_at(self, stamp: int) -> float | None:
         if not self.params.wheel or self.speed is None:
@@ -322,8 +336,9 @@ class Slam(Operator):
         stamp = w.epochs[-1].stamp_ns
         if self.params.batch:
             # the robot positions the tag search triangulates from are the solved ones, not dead
-            # reckoning: solve once without searching, then the update proper
-            w.update(search=False)
+            # reckoning: solve once, search for every tag, then the update proper
+            w.update()
+            w.find_tags()
             yield from self._update(stamp)
         yield Emit("path", self._path(stamp), stamp)
         yield Emit("tags", self._tags(stamp), stamp)

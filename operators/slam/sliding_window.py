@@ -25,8 +25,6 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg
 
 from rover.operators.slam.tag_search import Found, SearchSettings, search
 from rover.operators.slam.window_program import (
@@ -191,6 +189,24 @@ class _Model:
     prior_index: np.ndarray
 
 
+@dataclass(frozen=True)
+class _Bearings:
+    """The window's bearings stacked, one row each in epoch order: built once per window content
+    (the epochs in it and the slots per epoch), not at every pass of every update."""
+
+    key: tuple[int, int, int, int]
+    epoch: np.ndarray
+    tag: np.ndarray
+    angles: np.ndarray
+    """(rows, K) candidates, NaN-padded"""
+    stds: np.ndarray
+    jumps: np.ndarray
+    slot: np.ndarray
+    """each bearing's row in the program's slot layout (epoch * slots + its place in the epoch)"""
+    starts: np.ndarray
+    """the first row of each epoch, and the end"""
+
+
 @dataclass
 class Prior:
     """0.5 (x - mean)' H (x - mean) + grad' (x - mean) over the oldest epoch and the tags."""
@@ -313,6 +329,7 @@ class SlidingWindow:
     """epochs that left the window since the owner last emptied this list (their choices are final)"""
     found: list[tuple[int, Found]] = field(default_factory=list)
     """(tag id, search result) of every tag the search localized, in order"""
+    stacked: _Bearings | None = field(default=None, repr=False)
 
     @property
     def _prior(self) -> Prior:
@@ -445,59 +462,71 @@ class SlidingWindow:
 
     # -- the model ------------------------------------------------------------------------------
 
+    def _bearings(self) -> _Bearings:
+        """The window's bearings stacked (see _Bearings), rebuilt when the window's content changed."""
+        epochs = self.epochs
+        key = (len(epochs), epochs[0].stamp_ns if epochs else 0, epochs[-1].stamp_ns if epochs else 0, self.slots)
+        if self.stacked is not None and self.stacked.key == key:
+            return self.stacked
+        counts = np.array([len(e.tags) for e in epochs], dtype=int)
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        epoch = np.repeat(np.arange(len(epochs)), counts)
+        width = max((e.candidates.shape[1] for e in epochs if len(e.tags)), default=1)
+        self.stacked = _Bearings(
+            key=key,
+            epoch=epoch,
+            tag=np.concatenate([e.tags for e in epochs]).astype(int) if epochs else np.zeros(0, int),
+            angles=padded_rows([e.candidates for e in epochs], width, np.nan),
+            stds=padded_rows([e.candidate_std for e in epochs], width, 1.0),
+            jumps=padded_rows([e.candidate_jumps for e in epochs], width, -1).astype(int),
+            slot=epoch * self.slots + np.arange(len(epoch)) - starts[epoch],
+            starts=starts,
+        )
+        return self.stacked
+
     def _rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per slot: epoch index, tag slot (-1 when empty), world bearing (2), std, filled flag."""
+        """Per slot: epoch index, tag slot (-1 when empty), world bearing (2) of the chosen
+        candidate, its std, filled flag."""
         shape = self.shape
-        epoch = np.repeat(np.arange(shape.epochs), shape.slots)
+        b = self._bearings()
+        picked = np.arange(len(b.tag)), np.concatenate([e.choice for e in self.epochs]).astype(int)
+        angle = b.angles[picked]
         tag = np.full(shape.rows, -1)
         bearing = np.zeros((shape.rows, 2))
         std = np.ones(shape.rows)
-        for k, e in enumerate(self.epochs):
-            at = slice(k * shape.slots, k * shape.slots + len(e.tags))
-            tag[at], bearing[at], std[at] = e.tags, e.bearing, e.std
+        tag[b.slot] = b.tag
+        bearing[b.slot] = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        std[b.slot] = b.stds[picked]
         active = np.array(self.active + [False], bool)
-        return epoch, tag, bearing, std, (tag >= 0) & active[tag]
-
-    def _candidate_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per bearing in the window: epoch index, tag slot, candidate angles, stds and jumps (padded to
-        the window's most candidates)."""
-        width = max((e.candidates.shape[1] for e in self.epochs if len(e.tags)), default=1)
-        epoch = np.concatenate([np.full(len(e.tags), k) for k, e in enumerate(self.epochs)]).astype(int)
-        tag = np.concatenate([e.tags for e in self.epochs]).astype(int)
-
-        def stack(values: list[np.ndarray], pad: float) -> np.ndarray:
-            return padded_rows(values, width, pad)
-
-        return (
-            epoch,
-            tag,
-            stack([e.candidates for e in self.epochs], np.nan),
-            stack([e.candidate_std for e in self.epochs], 1.0),
-            stack([e.candidate_jumps for e in self.epochs], -1),
-        )
+        return np.repeat(np.arange(shape.epochs), shape.slots), tag, bearing, std, (tag >= 0) & active[tag]
 
     def _select(self, x: np.ndarray) -> None:
         """Max-mixture: each bearing of a tag in use takes the candidate likeliest at the estimate x,
         the learned weights of the jump combinations included (a once-per-run combination soon dominates)."""
         if not any(self.active) or not self.epochs:
             return
-        epoch, tag, angles, stds, jumps = self._candidate_rows()
+        b = self._bearings()
+        epoch, tag, angles, stds, jumps = b.epoch, b.tag, b.angles, b.stds, b.jumps
         if len(tag) == 0 or angles.shape[1] == 1:
             return
         offset = self._offsets(x, epoch, tag)
         predicted = np.arctan2(offset[:, 1], offset[:, 0])
         r = wrap(predicted[:, None] - angles) / stds
-        cost = 0.5 * np.minimum(r**2, SELECT_CAP_SIGMA**2) + np.log(stds) - self._log_weights(tag, jumps)
+        prior = np.log(stds) - self._log_weights(tag, jumps)  # a wide candidate, a rare combination: less likely
+        cost = 0.5 * np.minimum(r**2, SELECT_CAP_SIGMA**2) + prior
         cost = np.where(np.isfinite(r), cost, np.inf)
         free = np.argmin(cost, axis=1)
         rows = np.arange(len(free))
-        held = np.array([self.locked(int(t)) if self.active[t] else None for t in tag], dtype=object)
-        own = (jumps == np.where(held == None, -2, held).astype(int)[:, None]) & np.isfinite(angles)  # noqa: E711
+        held = np.full(len(self.tag_ids), -2)  # per tag slot: the combination it locked onto (-2: none)
+        for t in np.unique(tag):
+            lock = self.locked(int(t)) if self.active[t] else None
+            held[t] = -2 if lock is None else lock
+        own = (jumps == held[tag][:, None]) & np.isfinite(angles)
         choice = np.where(own.any(axis=1), np.argmax(own, axis=1), free)
         # odds of each candidate against the chosen one, uncapped and with the bursts' own stds (the
         # window's are scaled up for the errors consecutive bursts share, which is no doubt about a choice)
         raw = r * self.settings.aoa_std_scale
-        likely = np.where(np.isfinite(raw), 0.5 * raw**2 + np.log(stds) - self._log_weights(tag, jumps), np.inf)
+        likely = np.where(np.isfinite(raw), 0.5 * raw**2 + prior, np.inf)
         # normalized against each row's most likely candidate, so no exponent overflows (inf / inf)
         low = likely.min(axis=1, keepdims=True)
         finite = np.isfinite(likely)
@@ -506,26 +535,22 @@ class SlidingWindow:
         apart = np.where(np.isfinite(angles), wrap(angles - angles[rows, choice][:, None]), 0.0)
         doubt = np.sum(chance * apart**2, axis=1)
         use = np.array(self.active, bool)[tag]
-        start = 0
-        for e in self.epochs:
-            n = len(e.tags)
-            e.choice = np.where(use[start : start + n], choice[start : start + n], e.choice)
-            e.free_choice = np.where(use[start : start + n], free[start : start + n], e.free_choice)
-            e.doubt = np.where(use[start : start + n], doubt[start : start + n], e.doubt)
-            start += n
+        kept = [np.concatenate([getattr(e, name) for e in self.epochs]) for name in ("choice", "free_choice", "doubt")]
+        choice, free, doubt = (np.where(use, new, old) for new, old in zip((choice, free, doubt), kept, strict=True))
+        for k, e in enumerate(self.epochs):
+            at = slice(b.starts[k], b.starts[k + 1])
+            e.choice, e.free_choice, e.doubt = choice[at], free[at], doubt[at]
 
     def _log_weights(self, tag: np.ndarray, jumps: np.ndarray) -> np.ndarray:
         """log of each candidate's combination weight for its tag: its count among the tag's last
         LOCK_BEARINGS free choices plus one, normalized (recent only, so a later jump can be followed)."""
         combinations = max(int(jumps.max()) + 1, 1)
-        out = np.zeros(jumps.shape)
+        table = np.zeros((len(self.tag_ids), combinations))  # per tag slot and combination
         for t in np.unique(tag):
-            recent = self.recent_jumps.get(int(t), [])
-            counts = np.bincount([j for j in recent if j < combinations], minlength=combinations)
-            table = np.log((counts + 1.0) / (len(recent) + combinations))
-            mine = tag == t
-            out[mine] = np.where(jumps[mine] >= 0, table[np.maximum(jumps[mine], 0)], -math.log(combinations))
-        return out
+            recent = np.asarray(self.recent_jumps.get(int(t), []), dtype=int)
+            counts = np.bincount(recent[recent < combinations], minlength=combinations)
+            table[t] = np.log((counts + 1.0) / (len(recent) + combinations))
+        return np.where(jumps >= 0, table[tag[:, None], np.maximum(jumps, 0)], -math.log(combinations))
 
     def locked(self, tag_slot: int) -> int | None:
         """The jump combination a tag's chains hold (the free choice of LOCK_SHARE of its last
@@ -537,16 +562,27 @@ class SlidingWindow:
         top = max(set(recent), key=recent.count)
         return top if recent.count(top) >= LOCK_SHARE * len(recent) else None
 
-    def _search(self) -> None:
-        """Look for the tags waiting for their position whose history grew since their last search."""
+    def find_tags(self, limit: int | None = None) -> int:
+        """Look for the tags waiting for their position whose history grew since their last search,
+        at most `limit` searches (those waiting longest first; the others at the next call); a tag
+        found is in use from the next update. Returns the searches run.
+
+        Done between updates, not in them: a search costs several updates' time, and the pose of
+        this update need not wait for it."""
         window_xy = {e.stamp_ns: self.x[4 * k : 4 * k + 2] for k, e in enumerate(self.epochs)}
-        for t, kept in list(self.history.items()):
-            if self.active[t] or self.heard[t] < self.searched.get(t, 0) + SEARCH_EVERY:
-                continue
+        due = [
+            t for t in self.history if not self.active[t] and self.heard[t] >= self.searched.get(t, 0) + SEARCH_EVERY
+        ]
+        runs = 0
+        for t in sorted(due, key=lambda t: self.searched.get(t, 0) - self.heard[t]):
+            if limit is not None and runs >= limit:
+                break
             self.searched[t] = self.heard[t]
+            kept = self.history[t]
             rows = [(st, xy, row) for st, *row in kept if (xy := self.final_xy.get(st, window_xy.get(st))) is not None]
             if len(rows) < self.search.min_bearings:
                 continue
+            runs += 1
             width = max(len(row[0]) for _, _, row in rows)
 
             def padded(i: int, pad: float, rows=rows, width=width) -> np.ndarray:
@@ -557,6 +593,7 @@ class SlidingWindow:
             found = search(robot, angles, stds, self.search, jumps)
             if found is not None and found.clear(self.search):
                 self._activate(t, found, np.array([st for st, _, _ in rows]), robot, stds, jumps)
+        return runs
 
     def _activate(
         self, t: int, found: Found, stamps: np.ndarray, robot: np.ndarray, stds: np.ndarray, jumps: np.ndarray
@@ -646,15 +683,12 @@ class SlidingWindow:
 
     # -- one update -----------------------------------------------------------------------------
 
-    def update(self, search: bool = True) -> Update:
-        """Re-solve the window: convex passes with reweighted distances, then Gauss-Newton on angles.
-        First, unless `search` is off, look for the tags waiting for their position."""
+    def update(self) -> Update:
+        """Re-solve the window: convex passes with reweighted distances, then Gauss-Newton on angles."""
         s = self.settings
         shape = self.shape
         if self.program is None or self.program.shape != shape:
             self.program = self.program_type(shape)
-        if search:
-            self._search()  # first: a tag it finds changes the prior the program's numbers come from
         p = self._prior
         model = self._model()
         c = np.zeros(shape.states)
@@ -760,47 +794,37 @@ class SlidingWindow:
                 self.disagreement[t] = 0
                 self.resets += 1
 
-    def _information(self, epoch, tag, residual, jb, filled) -> sp.csc_matrix:
-        """The Gauss-Newton information of the window at the estimate (Huber rows IRLS-weighted)."""
+    def _information(self, epoch, tag, residual, jb, filled) -> np.ndarray:
+        """The Gauss-Newton information of the window at the estimate (Huber rows IRLS-weighted),
+        dense: a window has a few hundred states, where building a sparse matrix costs more than
+        factorizing the dense one."""
         shape = self.shape
         m = self.settings.huber_sigma
         w = np.where(filled, huber_weight(residual, m), 0.0)
+        n = shape.states
         pri = prior_indices(shape)
-        rows = [np.repeat(pri, len(pri))]
-        cols = [np.tile(pri, len(pri))]
-        vals = [self._prior.info.ravel()]
+        blocks = [(pri, self._prior.info[None])]  # (states of each block, the blocks): summed below
         if self.edges:
-            blocks = np.stack([e.block for e in self.edges])
-            idx = np.concatenate(
+            edge = np.concatenate(
                 [
                     4 * np.arange(len(self.edges))[:, None] + np.arange(8),
                     np.broadcast_to(shape.bias_index, (len(self.edges), shape.biases)),
                 ],
                 axis=1,
             )
-            width = idx.shape[1]
-            rows.append(np.repeat(idx[:, :, None], width, axis=2).ravel())
-            cols.append(np.repeat(idx[:, None, :], width, axis=1).ravel())
-            vals.append(blocks.ravel())
-        vel = 4 * np.arange(shape.epochs)[:, None] + np.array([2, 3])
-        rows.append(np.repeat(vel[:, :, None], 2, axis=2).ravel())
-        cols.append(np.repeat(vel[:, None, :], 2, axis=1).ravel())
-        vals.append(np.stack([e.velocity_info for e in self.epochs]).ravel())
+            blocks.append((edge, np.stack([e.block for e in self.edges])))
+        velocity = 4 * np.arange(shape.epochs)[:, None] + np.array([2, 3])
+        blocks.append((velocity, np.stack([e.velocity_info for e in self.epochs])))
+        flat = np.concatenate(
+            [(idx.reshape(-1, idx.shape[-1], 1) * n + idx.reshape(-1, 1, idx.shape[-1])).ravel() for idx, _ in blocks]
+        )
+        values = np.concatenate([b.ravel() for _, b in blocks])
+        info = np.bincount(flat, weights=values, minlength=n * n).reshape(n, n)
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
-        cols_slot = np.concatenate(
-            [
-                4 * epoch[:, None] + np.arange(2),
-                np.broadcast_to(4 * shape.epochs + np.arange(2 * shape.tags), (shape.rows, 2 * shape.tags)),
-            ],
-            axis=1,
-        )
-        outer = coeff[:, :, None] * coeff[:, None, :]
-        rows.append(np.repeat(cols_slot[:, :, None], cols_slot.shape[1], axis=2).ravel())
-        cols.append(np.repeat(cols_slot[:, None, :], cols_slot.shape[1], axis=1).ravel())
-        vals.append(outer.ravel())
-        return sp.csc_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(shape.states, shape.states)
-        )
+        rows = np.zeros((shape.rows, shape.states))
+        rows[np.arange(shape.rows)[:, None], 4 * epoch[:, None] + np.arange(2)] = coeff[:, :2]
+        rows[:, 4 * shape.epochs : 4 * shape.epochs + 2 * shape.tags] = coeff[:, 2:]
+        return info + rows.T @ rows
 
     def _covariances(self, epoch, tag, residual, jb, filled) -> None:
         nt, nb = len(self.tag_ids), self.biases
@@ -809,8 +833,8 @@ class SlidingWindow:
         rhs = np.zeros((info.shape[0], 2 * nt + nb))
         rhs[e:, :] = np.eye(2 * nt + nb)
         try:
-            cov = scipy.sparse.linalg.splu(info).solve(rhs)[e:]
-        except RuntimeError:
+            cov = np.linalg.solve(info, rhs)[e:]
+        except np.linalg.LinAlgError:
             cov = np.full((2 * nt + nb, 2 * nt + nb), np.inf)
         self.tag_covariance = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
         self.bias_covariance = cov[2 * nt :, 2 * nt :]

@@ -28,6 +28,9 @@ class SearchSettings:
     """bearings a tag needs before it is searched for"""
     pair_bearings: int = 16
     """bearings, spread over the history, whose candidate pairs are triangulated into hypotheses"""
+    score_bearings: int = 96
+    """bearings, spread over the history, that score the hypotheses (more only refine the winner):
+    bounds a search's work however long a tag waits"""
     cap_sigma: float = 3.0
     """a bearing whose best candidate is further off than this many stds costs cap_sigma^2 (an outlier)"""
     min_margin: float = 25.0
@@ -69,8 +72,8 @@ RAY_POINTS = 8
 FREE_MARGIN_FACTOR = 2.0
 """a position where each bearing picks its own candidate needs this many times the margin: with a
 free choice per bearing, a wrong place finds more ways to fit"""
-SCORE_CHUNK = 4_000_000
-"""residuals (hypotheses x bearings x candidates) scored at once"""
+SCORE_CHUNK = 65_536
+"""residuals (hypotheses x bearings x candidates) scored at once: half a megabyte, in cache"""
 RANGE_CHECK = np.array([1.5, 2 / 3])
 """a found position's distance from the robot path scaled by these must cost the margin too: a
 place the bearings would fit as well farther out (a ghost at the edge of the search) is no place"""
@@ -86,25 +89,45 @@ def _residuals(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.nd
     return np.where(np.isfinite(r), r, np.inf)
 
 
-def _score(r: np.ndarray, cap: float) -> np.ndarray:
-    """Per hypothesis: the sum over bearings of the best candidate's capped squared residual."""
-    return np.minimum(np.min(r**2, axis=2), cap**2).sum(axis=1)
-
-
 def _scores(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float) -> np.ndarray:
-    """_score of every hypothesis, a chunk at a time (16 candidates at 2.4 GHz make the residuals large)."""
+    """Per hypothesis q (H, 2): the sum over bearings of the best candidate's capped squared
+    residual, the hot loop of the search (hypotheses x bearings x candidates).
+
+    Each hypothesis's direction from each robot position is one atan2; with the candidates wrapped
+    once, a residual's size is the smaller of |difference| and a turn less it (no trigonometry
+    per candidate); a padding candidate (NaN) is never the best. Candidates lead the layout and
+    the hypotheses go a cache-sized chunk at a time: the reductions then run over contiguous rows."""
+    if len(q) == 0:
+        return np.zeros(0)
+    turn = 2 * math.pi
+    candidate = wrap_angle(angles).T[:, None, :]  # (K, 1, n)
+    inverse = (1.0 / stds).T[:, None, :]
     per = max(1, SCORE_CHUNK // max(angles.size, 1))
-    return np.concatenate(
-        [_score(_residuals(q[i : i + per], robot, angles, stds), cap) for i in range(0, len(q), per)] or [np.zeros(0)]
-    )
+    out = np.empty(len(q))
+    for i in range(0, len(q), per):
+        h = q[i : i + per]
+        predicted = np.arctan2(h[:, 1, None] - robot[None, :, 1], h[:, 0, None] - robot[None, :, 0])
+        r = np.abs(predicted[None] - candidate)  # (K, h, n), within two turns
+        np.minimum(r, turn - r, out=r)
+        r *= inverse
+        r *= r
+        out[i : i + per] = np.fmin(np.fmin.reduce(r, axis=0), cap**2).sum(axis=1)
+    return out
+
+
+def spread_along(robot: np.ndarray, count: int) -> np.ndarray:
+    """Indices of at most `count` robot positions spread evenly over the path (not the time: a
+    robot standing still adds no view)."""
+    n = len(robot)
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(robot, axis=0), axis=1))])
+    spots = np.linspace(0.0, along[-1], min(n, count))
+    return np.unique(np.minimum(np.searchsorted(along, spots), n - 1))
 
 
 def _hypotheses(robot: np.ndarray, angles: np.ndarray, s: SearchSettings) -> np.ndarray:
     """Intersections (H, 2) of candidate rays from pairs of bearings spread over the history."""
-    n, k = angles.shape
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(robot, axis=0), axis=1))])
-    spots = np.linspace(0.0, along[-1], min(n, s.pair_bearings))  # spread over the path, not the time
-    pick = np.unique(np.minimum(np.searchsorted(along, spots), n - 1))
+    k = angles.shape[1]
+    pick = spread_along(robot, s.pair_bearings)
     i, j = np.triu_indices(len(pick), 1)
     i, j = pick[i], pick[j]
     a_i = np.repeat(angles[i], k, axis=1)  # (pairs, K*K): candidate a of i with every b of j
@@ -191,9 +214,14 @@ def search(
     n = len(robot_xy)
     if n < s.min_bearings:
         return None
-    held: list[Found] = []
     if jumps is None:
         jumps = np.full(angles.shape, -1)
+    if n > s.score_bearings:
+        keep = spread_along(robot_xy, s.score_bearings)
+        if len(keep) < n:
+            found = search(robot_xy[keep], angles[keep], stds[keep], s, jumps[keep])
+            return None if found is None else _on_all(found, robot_xy, angles, stds, jumps, s)
+    held: list[Found] = []
     for combination in np.unique(jumps[jumps >= 0]):
         picked_a, picked_s, source = by_combination(angles, stds, jumps, int(combination))
         one = _search(robot_xy, picked_a, picked_s, s)
@@ -217,6 +245,35 @@ def search(
     return free if not held or (free is not None and free.clear(s)) else best
 
 
+def _on_all(
+    found: Found, robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, s: SearchSettings
+) -> Found:
+    """A position found on part of the bearings, refined on all of them (with the same jump
+    combination, if it has one): its choices, information, inliers and parallax are all the
+    bearings'; its margin stays the scoring bearings' (the rivals were scored on those)."""
+    if found.combination >= 0:
+        angles, stds, source = by_combination(angles, stds, jumps, found.combination)
+    position, choice, info, score = _refine(found.position, robot_xy, angles, stds, s.cap_sigma)
+    if found.combination >= 0:
+        choice = np.where(choice >= 0, source[np.arange(len(choice)), np.maximum(choice, 0)], -1)
+    inlier = choice >= 0
+    return replace(
+        found,
+        position=position,
+        choice=choice,
+        info=info,
+        inliers=float(np.mean(inlier)),
+        parallax_deg=_parallax_deg(position, robot_xy[inlier]),
+        score=score,
+    )
+
+
+def _parallax_deg(position: np.ndarray, seen_from: np.ndarray) -> float:
+    """Spread of the directions from which a position was seen (deg)."""
+    seen = position[None, :] - seen_from
+    return math.degrees(_spread(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0
+
+
 def _search(robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings) -> Found | None:
     q = _hypotheses(robot_xy, angles, s)
     if len(q) == 0:
@@ -230,10 +287,7 @@ def _search(robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: Searc
         moved = centre + np.outer(RANGE_CHECK, position - centre)
         margin = min(margin, float(_scores(moved, robot_xy, angles, stds, s.cap_sigma).min() - best))
     inliers = float(np.mean(choice >= 0))
-    seen = position[None, :] - robot_xy[choice >= 0]
-    directions = np.arctan2(seen[:, 1], seen[:, 0])
-    parallax = math.degrees(_spread(directions)) if len(directions) else 0.0
-    return Found(position, choice, info, margin, inliers, parallax, best)
+    return Found(position, choice, info, margin, inliers, _parallax_deg(position, robot_xy[choice >= 0]), best)
 
 
 def _reach(robot_xy: np.ndarray, position: np.ndarray, s: SearchSettings) -> float:
