@@ -281,11 +281,11 @@ def main() -> int:
             )
         print(f"gyro heading drift over a run (max): {max(figures['heading_drift_deg']):.2f} deg")
         if not args.no_long:
-            long_runs = {
-                "paper, 10 minutes (7 laps), seed 1": ("paper", 1, "trajectory.laps=7"),
-                "long_hall, seed 1": ("long_hall", 1),
+            long_runs: dict[str, tuple[str, int, list[str]]] = {
+                "paper, 10 minutes (7 laps), seed 1": ("paper", 1, ["trajectory.laps=7"]),
+                "long_hall, seed 1": ("long_hall", 1, []),
             }
-            for name, (scenario, seed, *sets) in long_runs.items():
+            for name, (scenario, seed, sets) in long_runs.items():
                 dataset = simulate(tmp, scenario, seed, *sets)
                 items = inputs(front_end(dataset, tmp / f"run-{dataset.stem}"), dataset)
                 out, cpu_s, _op, latency = run_slam(items, SlamParams())
