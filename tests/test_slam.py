@@ -149,3 +149,17 @@ def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
     final = [e.msg for e in out if e.port == "tags"][-1].tags
     assert [t.id for t in final if t.observable] == [1]
     assert math.hypot(final[0].position.x - 3.0, final[0].position.y - 2.0) < 0.2
+
+
+def test_paths_before_the_end_are_thinned_to_their_bound_and_the_last_is_whole():
+    sc = scene(seconds=30.0)
+    out = feed(Slam(SlamParams(window=20, path_every_s=1.0, path_max_poses=100)), sc, angles(sc))
+    paths = [e.msg for e in out if e.port == "path"]
+    trajectory = [e.msg for e in out if e.port == "trajectory"]
+    assert len(sc.t) > 200 and len(paths) > 20
+    for path in paths[:-1]:
+        assert len(path.poses) <= 100
+        stamps = [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in path.poses]
+        assert stamps == sorted(stamps) and stamps[0] == START_NS, "thinned, in order, from the start"
+    assert len(paths[-2].poses) == 100, "as many as allowed once the run is long enough"
+    assert [p.header.stamp for p in paths[-1].poses] == [p.header.stamp for p in trajectory], "the last is whole"

@@ -177,9 +177,10 @@ def test_a_tag_heard_long_is_scored_on_a_bounded_share_of_its_bearings(monkeypat
 
     def spy(q, robot_xy, *rest):
         scored.append(len(robot_xy))
-        return _scores(q, robot_xy, *rest)
+        return score_steps(q, robot_xy, *rest)
 
-    monkeypatch.setattr(tag_search, "_scores", spy)
+    score_steps = tag_search._score_steps
+    monkeypatch.setattr(tag_search, "_score_steps", spy)
     found = search(robot, angles, stds, s, jumps)
     assert scored and max(scored) <= s.score_bearings
     assert found is not None and found.clear(s) and found.combination == 2

@@ -14,7 +14,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from rover.geometry import quaternion_from_yaw, yaw_from_quaternion
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings, bias_jacobian
-from rover.pipeline.params import PositiveFloat
+from rover.pipeline.params import PositiveFloat, Range
 
 log = logging.getLogger("rover.slam")
 
@@ -32,8 +32,9 @@ DELTA_XY = [0, 1, 3, 4]
 """velocity x/y and position x/y in its accel_bias_jacobian's rows [velocity, position]"""
 COVARIANCE_FLOOR = 1e-12
 """smallest eigenvalue kept in an odometry covariance (m^2, (m/s)^2): keeps it positive definite"""
-SEARCHES_PER_EPOCH = 1
-"""tag searches after each epoch's update at most: bounds the work per epoch however many tags wait"""
+SEARCH_STEPS_PER_EPOCH = 4
+"""tag search steps after each epoch's update at most (a step scores a chunk of hypotheses or
+refines one, about a millisecond): bounds the work per epoch however many tags wait, however long"""
 
 
 @dataclass(frozen=True)
@@ -43,6 +44,10 @@ class SlamParams(WindowSettings):
     with the program's CVXPY specification (operators/slam/window_model.py)"""
     path_every_s: PositiveFloat = 10.0
     """event time between path messages (the last one, at the end, is complete)"""
+    path_max_poses: Annotated[int, Range(ge=100)] = 2000
+    """poses in a path message before the end at most: the final ones evenly thinned out, the
+    window's all (a path is for display; `trajectory` has every pose). Bounds the work of each
+    path: its serialization grows with the run (53 ms at 3000 poses, measured)"""
     wheel: bool = True
     """fuse the wheel odometry when the input is wired and carries data"""
     aoa_std_scale: PositiveFloat = 4.0
@@ -113,7 +118,10 @@ class Slam(Operator):
     outputs = {
         "pose": Out("geometry_msgs/msg/PoseStamped", doc="the newest epoch's pose, as estimated at its own time"),
         "trajectory": Out("geometry_msgs/msg/PoseStamped", doc="each epoch's final pose, when it leaves the window"),
-        "path": Out("nav_msgs/msg/Path", doc="the best path so far (final poses, then the window)"),
+        "path": Out(
+            "nav_msgs/msg/Path",
+            doc="the best path so far (final poses, thinned to path_max_poses but at the end, then the window)",
+        ),
         "tags": Out("rover_msgs/msg/TagArray", doc="every tag heard, with its 2x2 covariance"),
         "diagnostics": Out("rover_msgs/msg/SlamDiagnostics"),
         "timing": Out("rover_msgs/msg/Timing", doc="wall-clock time of each update, every reweighting pass included"),
@@ -136,7 +144,8 @@ class Slam(Operator):
             self.window.program_type = WindowModel
         self.pending: dict[int, list[Any]] = {}
         self.channels: dict[int, int] = {}
-        self.finals_sent = 0
+        self.final_poses: list[Any] = []
+        """the trajectory's final poses as sent, in order (the path reuses them)"""
         self.last_path_ns: int | None = None
         self.speed: tuple[int, float] | None = None
         self.updates = 0
@@ -225,9 +234,9 @@ class Slam(Operator):
         yield from self._find_tags(stamp)
 
     def _find_tags(self, stamp: int):
-        """One tag search after this epoch's outputs are out (its pose need not wait for it)."""
+        """A few tag search steps after this epoch's outputs are out (its pose need not wait for them)."""
         started = time.perf_counter()
-        if self.window.find_tags(limit=SEARCHES_PER_EPOCH):
+        if self.window.find_tags(steps=SEARCH_STEPS_PER_EPOCH):
             wall_s = time.perf_counter() - started
             yield Emit(
                 "timing",
@@ -271,9 +280,10 @@ class Slam(Operator):
     def _finals(self, stamp: int):
         """Poses that left the window since the last call, and their AoAs with the candidate used,
         stamped now on the wire."""
-        for s, x, y, yaw in self.window.finals[self.finals_sent :]:
-            yield Emit("trajectory", pose_message(s, x, y, yaw), stamp)
-        self.finals_sent = len(self.window.finals)
+        for s, x, y, yaw in self.window.finals[len(self.final_poses) :]:
+            pose = pose_message(s, x, y, yaw)
+            self.final_poses.append(pose)
+            yield Emit("trajectory", pose, stamp)
         for t, found in self.window.found[self.found_sent :]:
             held = (
                 f"jump combination {found.combination} all along" if found.combination >= 0 else "jumps at any retune"
@@ -324,9 +334,15 @@ class Slam(Operator):
             )
         return make("rover_msgs/msg/TagArray", header=header(stamp, "world"), tags=tags)
 
-    def _path(self, stamp: int) -> Any:
-        poses = [pose_message(*p) for p in [*self.window.finals, *self.window.poses()]]
-        return make("nav_msgs/msg/Path", header=header(stamp, "world"), poses=poses)
+    def _path(self, stamp: int, complete: bool = False) -> Any:
+        """The trajectory: the final poses as sent (made once; unless `complete`, evenly thinned out
+        to `path_max_poses` with the window's), then the window's."""
+        finals = [*self.final_poses, *(pose_message(*p) for p in self.window.finals[len(self.final_poses) :])]
+        window = [pose_message(*p) for p in self.window.poses()]
+        room = max(self.params.path_max_poses - len(window), 2)
+        if not complete and len(finals) > room:
+            finals = [finals[i] for i in np.unique(np.linspace(0, len(finals) - 1, room).round().astype(int))]
+        return make("nav_msgs/msg/Path", header=header(stamp, "world"), poses=finals + window)
 
     def on_end(self):
         w = self.window
@@ -340,7 +356,7 @@ class Slam(Operator):
             w.update()
             w.find_tags()
             yield from self._update(stamp)
-        yield Emit("path", self._path(stamp), stamp)
+        yield Emit("path", self._path(stamp, complete=True), stamp)
         yield Emit("tags", self._tags(stamp), stamp)
         w.finals.extend(w.poses())
         w.left.extend(w.epochs)

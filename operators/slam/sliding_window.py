@@ -20,13 +20,13 @@ The distances in the weights have a floor (no tag is closer than `min_range_m` t
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 import numpy as np
 
-from rover.operators.slam.tag_search import Found, SearchSettings, search
+from rover.operators.slam.tag_search import Found, SearchSettings, search_steps
 from rover.operators.slam.window_program import (
     Program,
     Shape,
@@ -208,6 +208,19 @@ class _Bearings:
 
 
 @dataclass
+class _Search:
+    """A tag search under way: the tag slot, what it searches (bearing stamps, robot positions,
+    candidate stds and jumps, for putting the tag in use), and its remaining steps."""
+
+    tag: int
+    stamps: np.ndarray
+    robot: np.ndarray
+    stds: np.ndarray
+    jumps: np.ndarray
+    steps: Generator[None, None, Found | None]
+
+
+@dataclass
 class Prior:
     """0.5 (x - mean)' H (x - mean) + grad' (x - mean) over the oldest epoch and the tags."""
 
@@ -330,6 +343,8 @@ class SlidingWindow:
     found: list[tuple[int, Found]] = field(default_factory=list)
     """(tag id, search result) of every tag the search localized, in order"""
     stacked: _Bearings | None = field(default=None, repr=False)
+    searching: _Search | None = field(default=None, repr=False)
+    """the tag search under way, if any (find_tags)"""
 
     @property
     def _prior(self) -> Prior:
@@ -562,27 +577,45 @@ class SlidingWindow:
         top = max(set(recent), key=recent.count)
         return top if recent.count(top) >= LOCK_SHARE * len(recent) else None
 
-    def find_tags(self, limit: int | None = None) -> int:
-        """Look for the tags waiting for their position whose history grew since their last search,
-        at most `limit` searches (those waiting longest first; the others at the next call); a tag
-        found is in use from the next update. Returns the searches run.
+    def find_tags(self, steps: int | None = None) -> int:
+        """Advance the searches for the tags waiting for their position by at most `steps` steps
+        (None: until every search due has run); returns the steps taken. A search is due for a tag
+        whose history grew by SEARCH_EVERY since its last one; the tag waiting longest goes first,
+        one search at a time, each from the robot positions of when it started; a tag found is in
+        use from the next update.
 
-        Done between updates, not in them: a search costs several updates' time, and the pose of
-        this update need not wait for it."""
+        Done between updates, not in them, a few steps at a time (tag_search.search_steps): a
+        whole search costs several updates' time, and no pose need wait for it."""
+        taken = 0
+        while steps is None or taken < steps:
+            if self.searching is None:
+                self.searching = self._next_search()
+                if self.searching is None:
+                    break
+            taken += 1
+            try:
+                next(self.searching.steps)
+            except StopIteration as done:
+                run, self.searching = self.searching, None
+                if done.value is not None and done.value.clear(self.search):
+                    self._activate(run.tag, done.value, run.stamps, run.robot, run.stds, run.jumps)
+        return taken
+
+    def _next_search(self) -> _Search | None:
+        """The search of the tag waiting longest among those due, started (None: none is due)."""
         window_xy = {e.stamp_ns: self.x[4 * k : 4 * k + 2] for k, e in enumerate(self.epochs)}
         due = [
             t for t in self.history if not self.active[t] and self.heard[t] >= self.searched.get(t, 0) + SEARCH_EVERY
         ]
-        runs = 0
         for t in sorted(due, key=lambda t: self.searched.get(t, 0) - self.heard[t]):
-            if limit is not None and runs >= limit:
-                break
             self.searched[t] = self.heard[t]
-            kept = self.history[t]
-            rows = [(st, xy, row) for st, *row in kept if (xy := self.final_xy.get(st, window_xy.get(st))) is not None]
+            rows = [
+                (st, xy, row)
+                for st, *row in self.history[t]
+                if (xy := self.final_xy.get(st, window_xy.get(st))) is not None
+            ]
             if len(rows) < self.search.min_bearings:
                 continue
-            runs += 1
             width = max(len(row[0]) for _, _, row in rows)
 
             def padded(i: int, pad: float, rows=rows, width=width) -> np.ndarray:
@@ -590,10 +623,9 @@ class SlidingWindow:
 
             robot = np.array([xy for _, xy, _ in rows])
             angles, stds, jumps = padded(0, np.nan), padded(1, 1.0), padded(2, -1).astype(int)
-            found = search(robot, angles, stds, self.search, jumps)
-            if found is not None and found.clear(self.search):
-                self._activate(t, found, np.array([st for st, _, _ in rows]), robot, stds, jumps)
-        return runs
+            stamps = np.array([st for st, _, _ in rows])
+            return _Search(t, stamps, robot, stds, jumps, search_steps(robot, angles, stds, self.search, jumps))
+        return None
 
     def _activate(
         self, t: int, found: Found, stamps: np.ndarray, robot: np.ndarray, stds: np.ndarray, jumps: np.ndarray

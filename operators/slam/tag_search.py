@@ -15,7 +15,9 @@ bearing picks its own candidate.
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 
@@ -89,22 +91,44 @@ def _residuals(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.nd
     return np.where(np.isfinite(r), r, np.inf)
 
 
+T = TypeVar("T")
+
+
+def finish(steps: Generator[None, None, T]) -> T:
+    """Run a search's steps (see `search_steps`) to the end; its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
 def _scores(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float) -> np.ndarray:
     """Per hypothesis q (H, 2): the sum over bearings of the best candidate's capped squared
-    residual, the hot loop of the search (hypotheses x bearings x candidates).
+    residual (all at once; `_score_steps` a chunk per step)."""
+    return finish(_score_steps(q, robot, angles, stds, cap))
+
+
+def _score_steps(
+    q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float
+) -> Generator[None, None, np.ndarray]:
+    """_scores, the hot loop of the search (hypotheses x bearings x candidates), one cache-sized
+    chunk of hypotheses per step.
 
     Each hypothesis's direction from each robot position is one atan2; with the candidates wrapped
     once, a residual's size is the smaller of |difference| and a turn less it (no trigonometry
-    per candidate); a padding candidate (NaN) is never the best. Candidates lead the layout and
-    the hypotheses go a cache-sized chunk at a time: the reductions then run over contiguous rows."""
+    per candidate); a padding candidate (NaN) is never the best. Candidates lead the layout: the
+    reductions then run over contiguous rows."""
+    out = np.empty(len(q))
     if len(q) == 0:
-        return np.zeros(0)
+        return out
     turn = 2 * math.pi
     candidate = wrap_angle(angles).T[:, None, :]  # (K, 1, n)
     inverse = (1.0 / stds).T[:, None, :]
     per = max(1, SCORE_CHUNK // max(angles.size, 1))
-    out = np.empty(len(q))
     for i in range(0, len(q), per):
+        if i:
+            yield
         h = q[i : i + per]
         predicted = np.arctan2(h[:, 1, None] - robot[None, :, 1], h[:, 0, None] - robot[None, :, 0])
         r = np.abs(predicted[None] - candidate)  # (K, h, n), within two turns
@@ -211,6 +235,15 @@ def search(
     With the candidates' jump combinations (n, K), a combination held by the tag's channel all run
     long is tried first, one hypothesis family per combination (far fewer ways for a wrong place
     to fit); failing that, each bearing picks its own candidate (a jump at any retune)."""
+    return finish(search_steps(robot_xy, angles, stds, s, jumps))
+
+
+def search_steps(
+    robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings, jumps: np.ndarray | None = None
+) -> Generator[None, None, Found | None]:
+    """`search` a step at a time: each step scores one chunk of hypotheses (SCORE_CHUNK residuals)
+    or refines one, so that a caller can spread a search over its idle time (the same result as
+    `search`, whatever the steps taken at once)."""
     n = len(robot_xy)
     if n < s.min_bearings:
         return None
@@ -219,12 +252,15 @@ def search(
     if n > s.score_bearings:
         keep = spread_along(robot_xy, s.score_bearings)
         if len(keep) < n:
-            found = search(robot_xy[keep], angles[keep], stds[keep], s, jumps[keep])
-            return None if found is None else _on_all(found, robot_xy, angles, stds, jumps, s)
+            found = yield from search_steps(robot_xy[keep], angles[keep], stds[keep], s, jumps[keep])
+            if found is None:
+                return None
+            yield
+            return _on_all(found, robot_xy, angles, stds, jumps, s)
     held: list[Found] = []
     for combination in np.unique(jumps[jumps >= 0]):
         picked_a, picked_s, source = by_combination(angles, stds, jumps, int(combination))
-        one = _search(robot_xy, picked_a, picked_s, s)
+        one = yield from _search_steps(robot_xy, picked_a, picked_s, s)
         if one is not None:
             choice = np.where(one.choice >= 0, source[np.arange(n), np.maximum(one.choice, 0)], -1)
             held.append(replace(one, choice=choice, combination=int(combination)))
@@ -235,7 +271,7 @@ def search(
         best = replace(best, margin=min([best.margin, *rivals]))
         if best.clear(s):
             return best
-    free = _search(robot_xy, angles, stds, s)
+    free = yield from _search_steps(robot_xy, angles, stds, s)
     if free is not None:
         reach = _reach(robot_xy, free.position, s)
         elsewhere = np.array([f.position for f in held if np.linalg.norm(f.position - free.position) > reach])
@@ -274,11 +310,16 @@ def _parallax_deg(position: np.ndarray, seen_from: np.ndarray) -> float:
     return math.degrees(_spread(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0
 
 
-def _search(robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings) -> Found | None:
+def _search_steps(
+    robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings
+) -> Generator[None, None, Found | None]:
+    """One family of hypotheses (the candidates given), scored, its best refined, its margin."""
     q = _hypotheses(robot_xy, angles, s)
     if len(q) == 0:
         return None
-    score = _scores(q, robot_xy, angles, stds, s.cap_sigma)
+    yield
+    score = yield from _score_steps(q, robot_xy, angles, stds, s.cap_sigma)
+    yield
     position, choice, info, best = _refine(q[np.argmin(score)], robot_xy, angles, stds, s.cap_sigma)
     elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(robot_xy, position, s)]
     margin = float(elsewhere.min() - best) if len(elsewhere) else math.inf
