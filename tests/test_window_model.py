@@ -124,6 +124,16 @@ def rows_at(shape: Shape, coefficients: np.ndarray) -> np.ndarray:
     return rows
 
 
+def unheard_tag_states(shape: Shape, d: UpdateData) -> np.ndarray:
+    """The states of the tags no row of the window uses (waiting for the tag search): only their
+    30 m prior holds them (information 1/900), where the solvers' objective precision (1e-9
+    relative) leaves millimetres; they are compared in the metric of the objective instead."""
+    used = np.any(rows_at(shape, d.a) != 0, axis=0) | np.any(rows_at(shape, d.g) != 0, axis=0)
+    tag_state = np.zeros(shape.states, bool)
+    tag_state[4 * shape.epochs : 4 * shape.epochs + 2 * shape.tags] = True
+    return tag_state & ~used
+
+
 def unique(h: np.ndarray) -> bool:
     try:
         np.linalg.cholesky(h - UNIQUE_MIN_INFO * np.eye(len(h)))
@@ -151,7 +161,11 @@ def compare(windows: list[tuple[Shape, UpdateData]]) -> dict[str, int]:
         shapes.add(shape)
         gap = abs(model.objective - program.objective)
         assert gap <= OBJECTIVE_REL * max(1.0, abs(program.objective)), (shape, model.objective, program.objective)
-        assert np.max(np.abs(x_model - x_compiled)) <= STATES_M, (shape, np.max(np.abs(x_model - x_compiled)))
+        dx = x_model - x_compiled
+        waiting = unheard_tag_states(shape, d)
+        assert np.max(np.abs(dx[~waiting]), initial=0.0) <= STATES_M, (shape, np.max(np.abs(dx[~waiting])))
+        h = hessian(shape, d, x_compiled)[np.ix_(waiting, waiting)]
+        assert 0.5 * dx[waiting] @ h @ dx[waiting] <= OBJECTIVE_REL * max(1.0, abs(program.objective)), shape
         residual = rows_at(shape, d.a) @ x_compiled + d.offset
         seen["huber_linear"] += bool(np.any(np.abs(residual) > d.huber_m))
         seen["hinge"] += bool(np.any((rows_at(shape, d.g) @ x_compiled < 0) & (d.hinge > 0)))
@@ -164,13 +178,13 @@ def test_every_captured_window_has_the_same_optimum_both_ways(windows):
     assert seen["windows"] >= 100, seen
     assert seen["unique"] >= 0.8 * seen["windows"], f"too few windows with a unique optimum: {seen}"
     assert seen["shapes"] >= 5, seen  # windows filling, sliding, with tags found on the way
-    assert seen["hinge"] > 0, seen  # the cheirality hinge was active somewhere
 
 
 def test_windows_with_outlier_bearings_have_the_same_optimum_both_ways():
     seen = compare(outlier_windows())
     assert seen["unique"] >= 0.8 * seen["windows"], seen
     assert seen["huber_linear"] > 0, seen  # rows in Huber's linear zone were compared
+    assert seen["hinge"] > 0, seen  # and rows whose cheirality hinge was active
 
 
 def test_batch_mode_solves_with_the_model(lap_runs):

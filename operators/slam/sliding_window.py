@@ -13,7 +13,9 @@ attitudes), which makes every constraint linear in the state:
 
 The cross product is the pseudolinear bearing estimator, biased toward short ranges as the AoA
 noise grows (Dogancay 2004), and reweighting by the current distance feeds that bias. Each update
-therefore ends with Gauss-Newton steps on the true angle residual (atan2) from the convex solution.
+therefore ends with Gauss-Newton steps on the true angle residual (atan2) from the convex solution,
+or, once every tag in use is localized, from the last estimate alone (the convex passes are there
+to start tags that are not: one solve an update instead of two, and the same estimates).
 The distances in the weights have a floor (no tag is closer than `min_range_m` to the antennas).
 """
 
@@ -48,7 +50,8 @@ class WindowSettings(Checked):
     hinge_weight: NonNegativeFloat = 10.0
     """cost per (distance / (d * sigma)) of a tag placed behind its bearing"""
     reweight_passes: PositiveInt = 3
-    """at most this many convex solves per update, each with the distances of the previous one"""
+    """at most this many convex solves per update, each with the distances of the previous one;
+    none while every tag in use is localized (the Gauss-Newton steps start from the last estimate)"""
     reweight_tolerance: PositiveFloat = 0.1
     """the passes stop once no distance to a tag not yet localized (inlier rows) changed by more than
     this fraction; for localized tags the distances of the last refined estimate are already right,
@@ -194,7 +197,7 @@ class _Bearings:
     """The window's bearings stacked, one row each in epoch order: built once per window content
     (the epochs in it and the slots per epoch), not at every pass of every update."""
 
-    key: tuple[int, int, int, int]
+    key: tuple[int, int, int, int, int]
     epoch: np.ndarray
     tag: np.ndarray
     angles: np.ndarray
@@ -343,6 +346,9 @@ class SlidingWindow:
     found: list[tuple[int, Found]] = field(default_factory=list)
     """(tag id, search result) of every tag the search localized, in order"""
     stacked: _Bearings | None = field(default=None, repr=False)
+    modelled: tuple[tuple[int, int, int, int, int], _Model] | None = field(default=None, repr=False)
+    judged: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    """the last observable() and the covariance it judged (the object itself: replaced, not edited)"""
     searching: _Search | None = field(default=None, repr=False)
     """the tag search under way, if any (find_tags)"""
 
@@ -480,7 +486,7 @@ class SlidingWindow:
     def _bearings(self) -> _Bearings:
         """The window's bearings stacked (see _Bearings), rebuilt when the window's content changed."""
         epochs = self.epochs
-        key = (len(epochs), epochs[0].stamp_ns if epochs else 0, epochs[-1].stamp_ns if epochs else 0, self.slots)
+        key = self._content()
         if self.stacked is not None and self.stacked.key == key:
             return self.stacked
         counts = np.array([len(e.tags) for e in epochs], dtype=int)
@@ -680,11 +686,21 @@ class SlidingWindow:
         residual, jb = angle_residuals(self._offsets(x, epoch, tag), bearing, std, self.settings.min_range_m)
         return np.where(filled, residual, 0.0), np.where(filled[:, None], jb, 0.0)
 
+    def _content(self) -> tuple[int, int, int, int, int]:
+        """What the window holds, as far as the stacked numbers go: epochs (how many, the first
+        and last stamps), slots per epoch, tags."""
+        epochs = self.epochs
+        first, last = (epochs[0].stamp_ns, epochs[-1].stamp_ns) if epochs else (0, 0)
+        return len(epochs), first, last, self.slots, len(self.tag_ids)
+
     def _model(self) -> _Model:
-        """The update's fixed numbers, stacked once."""
+        """The update's fixed numbers, stacked once per window content."""
+        key = self._content()
+        if self.modelled is not None and self.modelled[0] == key:
+            return self.modelled[1]
         ne = len(self.edges)
         chol = np.stack([e.chol for e in self.edges]) if ne else np.zeros((0, 4, 4))
-        return _Model(
+        model = _Model(
             edge_l=edge_matrix(np.array([e.dt for e in self.edges])),
             edge_chol=chol,
             edge_whiten=np.linalg.inv(chol) if ne else chol,
@@ -695,6 +711,8 @@ class SlidingWindow:
             velocity_linear=np.stack([e.velocity_linear for e in self.epochs]),
             prior_index=prior_indices(self.shape),
         )
+        self.modelled = (key, model)
+        return model
 
     def _cost(self, model: _Model, x: np.ndarray, residual: np.ndarray) -> float:
         """The true cost: odometry, wheel, prior, and the Huber loss of the angle residuals."""
@@ -747,7 +765,10 @@ class SlidingWindow:
             d = np.maximum(np.linalg.norm(self._offsets(x, epoch, tag), axis=1), s.min_range_m)
             localized = np.zeros(max(shape.tags, 1), bool)
             localized[: len(self.tag_covariance)] = self.observable()
-            for _ in range(s.reweight_passes):
+            # with every tag in use localized, the last estimate is as good a start for the
+            # Gauss-Newton steps as the convex program's (which is there to start tags it has not)
+            known = not (filled & ~localized[np.maximum(tag, 0)]).any()
+            for _ in range(0 if known else s.reweight_passes):
                 scale = np.where(filled, 1.0 / (d * std), 0.0)
                 x, iterations = self.program.solve(
                     UpdateData(
@@ -872,12 +893,17 @@ class SlidingWindow:
         self.bias_covariance = cov[2 * nt :, 2 * nt :]
 
     def observable(self) -> np.ndarray:
-        """Per tag: localized well enough to report (largest std below `observable_std_m`)."""
+        """Per tag: localized well enough to report (largest std below `observable_std_m`); worked
+        out once per covariance."""
+        if self.judged is not None and self.judged[0] is self.tag_covariance:
+            return self.judged[1].copy()
         if len(self.tag_covariance) == 0:
             return np.zeros(0, bool)
         cov = np.nan_to_num(self.tag_covariance, nan=1e12, posinf=1e12)
         worst = np.linalg.eigvalsh(0.5 * (cov + cov.transpose(0, 2, 1)))[:, -1]
-        return np.sqrt(np.maximum(worst, 0)) <= self.settings.observable_std_m
+        result = np.sqrt(np.maximum(worst, 0)) <= self.settings.observable_std_m
+        self.judged = (self.tag_covariance, result)
+        return result.copy()
 
     # -- marginalization ------------------------------------------------------------------------
 
