@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -18,13 +19,15 @@ def main() -> int:
     results: dict = {
         "date": time.strftime("%Y-%m-%d"),
         "machine": f"{platform.machine()}, {platform.processor() or platform.system()}, "
-        f"{__import__('os').cpu_count()} cores, Python {platform.python_version()}",
+        f"{os.cpu_count()} cores, Python {platform.python_version()}",
     }
     status = 0
     for bench in BENCHES:
         with tempfile.NamedTemporaryFile(suffix=".json") as out:
             print(f"== {bench.name}", flush=True)
-            proc = subprocess.run([sys.executable, str(bench), "--json", out.name])
+            # one OpenBLAS thread, as the `rover` command sets (cli/__init__.py): the benches run operators in-process
+            env = {"OPENBLAS_NUM_THREADS": "1", **os.environ}
+            proc = subprocess.run([sys.executable, str(bench), "--json", out.name], env=env)
             if proc.returncode != 0:
                 print(f"{bench.name} failed with status {proc.returncode}", file=sys.stderr)
                 status = 1
