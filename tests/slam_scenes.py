@@ -85,9 +85,11 @@ def estimate(
     update_every: int = 1,
     bias: np.ndarray | None = None,
     levelled_std_m_s2: float = 0.0,
+    wheel_reads: float | None = None,
 ) -> tuple[SlidingWindow, np.ndarray]:
-    """Run the window over the scene (its odometry with an accelerometer `bias`, see `edge`);
-    returns it and the robot positions as finally estimated."""
+    """Run the window over the scene (its odometry with an accelerometer `bias`, see `edge`; with
+    `wheel_reads`, wheel odometry reading that many times the true speed); returns it and the robot
+    positions as finally estimated."""
     w = SlidingWindow(settings)
     for k, (tag, angle) in enumerate(measured):
         w.add_epoch(
@@ -98,6 +100,7 @@ def estimate(
             np.array([math.radians(std_deg)]),
             edge(sc, k, bias) if k else None,
             levelled_std_m_s2=levelled_std_m_s2,
+            speed_m_s=None if wheel_reads is None else wheel_reads * float(np.linalg.norm(sc.velocity[k])),
         )
         if k % update_every == 0 or k == len(measured) - 1:
             w.find_tags()

@@ -71,6 +71,23 @@ def test_an_accelerometer_bias_is_estimated_and_taken_out():
     assert np.linalg.norm(drifted - sc.position, axis=1).max() > 1.0
 
 
+def test_a_wheel_scale_error_is_estimated_through_the_marginalization():
+    """Wheels reading 4% over the true speed, a 15-epoch window over 20 s of a circle: the scale state
+    finds it from the IMU's speed (it keeps what left the window) and the path follows the IMU's
+    scale; with the error taken for noise instead, the wheels pull the path out by their 4%."""
+    sc = scene(seconds=20.0)
+    measured = angles(sc, noise_deg=1.0, seed=5)
+    loose = dict(EXACT_IMU, window=15, wheel_speed_std_m_s=1e-3)
+    (w, final), (plain, pulled) = (
+        estimate(sc, WindowSettings(**loose, wheel_scale=on), measured, 1.0, wheel_reads=1.04) for on in (True, False)
+    )
+    std = math.sqrt(w.bias_covariance[-1, -1])
+    assert abs(w.wheel_scale() - (1 - 1 / 1.04)) < max(3 * std, 1e-3) and std < 0.003
+    assert plain.wheel_scale() == 0.0 and plain.biases == 0
+    assert np.linalg.norm(final - sc.position, axis=1).max() < 0.05
+    assert np.linalg.norm(pulled - sc.position, axis=1).max() > 2 * np.linalg.norm(final - sc.position, axis=1).max()
+
+
 def test_ranges_are_not_biased_short_at_10_degrees():
     """The pseudolinear cross product shrinks ranges as noise grows; the atan2 refinement must not.
     (Exact odometry and no bias states: the scale is the odometry's, the ranges the bearings'.)"""

@@ -23,7 +23,14 @@ from rover.formats.bag import BagReader
 from rover.operators.slam.operator import Slam, SlamParams
 from rover.operators.slam.sliding_window import WindowSettings
 from rover.operators.slam.window_model import TOLERANCE, WindowModel
-from rover.operators.slam.window_program import Shape, UpdateData, WindowProgram, prior_indices, slot_columns
+from rover.operators.slam.window_program import (
+    Shape,
+    UpdateData,
+    WindowProgram,
+    prior_indices,
+    slot_columns,
+    velocity_columns,
+)
 from rover.testing import run_operator
 
 PREFIX_S = 30.0
@@ -99,8 +106,8 @@ def hessian(shape: Shape, d: UpdateData, x: np.ndarray) -> np.ndarray:
     h = np.zeros((shape.states, shape.states))
     prior = prior_indices(shape)
     h[np.ix_(prior, prior)] += d.prior_info
-    for k, info in enumerate(d.velocity_info):
-        h[4 * k + 2 : 4 * k + 4, 4 * k + 2 : 4 * k + 4] += info
+    for columns, info in zip(velocity_columns(shape), d.velocity_info, strict=True):
+        h[np.ix_(columns, columns)] += info
     for e, (lmat, chol, jb) in enumerate(zip(d.edge_l, d.edge_chol, d.edge_bias, strict=True)):
         span = np.concatenate([np.arange(4 * e, 4 * e + 8), shape.bias_index])
         full = np.concatenate([lmat, jb], axis=1)
@@ -178,6 +185,8 @@ def test_every_captured_window_has_the_same_optimum_both_ways(windows):
     assert seen["windows"] >= 100, seen
     assert seen["unique"] >= 0.8 * seen["windows"], f"too few windows with a unique optimum: {seen}"
     assert seen["shapes"] >= 5, seen  # windows filling, sliding, with tags found on the way
+    # the wheel run's windows hold the wheel scale state, coupled to the velocities by the wheel speed
+    assert any(shape.scale and np.any(d.velocity_info[:, :2, 2]) for shape, d in windows)
 
 
 def test_windows_with_outlier_bearings_have_the_same_optimum_both_ways():

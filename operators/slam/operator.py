@@ -137,6 +137,7 @@ class Slam(Operator):
         settings = {f: getattr(self.params, f) for f in WindowSettings.__dataclass_fields__}
         if self.params.batch:
             settings["window"] = 2**31
+        settings["wheel_scale"] = self.params.wheel_scale and self.params.wheel  # nothing to scale without
         self.window = SlidingWindow(WindowSettings(**settings))
         if self.params.batch:  # one solve of the whole run: the CVXPY model, the program as specified
             from rover.operators.slam.window_model import WindowModel  # cvxpy only when asked for
@@ -368,8 +369,10 @@ class Slam(Operator):
                 "slam: no wheel odometry arrived: the speed came from the IMU and the bearings alone "
                 "(set slam.wheel=false when that is intended; see the README's benchmarks for the accuracy)"
             )
-        if w.biases:
-            std = np.sqrt(np.maximum(np.diag(w.bias_covariance), 0.0)) if w.bias_covariance.size else np.full(4, np.inf)
+        std = np.sqrt(np.maximum(np.diag(w.bias_covariance), 0.0)) if w.bias_covariance.size else np.full(5, np.inf)
+        if w.scale and self.speed is not None:
+            log.info("slam: wheel odometry scale error %+.2f%% +- %.2f%%", 100 * w.wheel_scale(), 100 * std[-1])
+        if w.accel_biases:
             mg = 1e3 / 9.80665
             bias = w.bias()
             log.info(

@@ -37,6 +37,7 @@ from rover.operators.slam.window_program import (
     WindowProgram,
     edge_matrix,
     prior_indices,
+    velocity_columns,
 )
 from rover.pipeline.params import Checked, Fraction, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt, Range
 
@@ -73,7 +74,16 @@ class WindowSettings(Checked):
     wheel_speed_std_m_s: PositiveFloat = 0.01
     """wheel odometry speed noise"""
     wheel_scale_std: NonNegativeFloat = 0.03
-    """wheel radius error, as a fraction of the speed"""
+    """wheel radius error, as a fraction of the speed: the prior std of the wheel scale state (with
+    `wheel_scale`), else noise added to every speed"""
+    wheel_scale: bool = True
+    """estimate the wheel odometry's scale error as a state shared by the window and carried through
+    the marginalization: a radius error is one number for the run, not noise per epoch, and over a
+    long straight leg it is most of the robot's error (bearings say nothing of scale); the IMU makes
+    it observable wherever the speed changes (starts, stops, turns in place)"""
+    wheel_scale_walk_rts: NonNegativeFloat = 1e-4
+    """how fast the wheel scale may wander (random walk, fraction per square-root second: tyre
+    pressure, load)"""
     nonholonomic: bool = True
     """a wheeled base does not move sideways: its velocity is along its heading (linear given the gyro's)"""
     lateral_std_m_s: PositiveFloat = 0.02
@@ -126,7 +136,8 @@ class Epoch:
     doubt: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """per bearing: the variance (rad^2) the other candidates' chances add to the chosen one's angle"""
     velocity_info: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
-    """wheel odometry on this epoch's velocity: 0.5 v'Wv - w'v"""
+    """wheel odometry and the velocity constraints on this epoch: 0.5 y'Wy - w'y over y = its velocity
+    (and the wheel scale, when the window estimates it: window_program.velocity_columns)"""
     velocity_linear: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     def __post_init__(self) -> None:
@@ -322,7 +333,7 @@ class SlidingWindow:
     """(stamp, x, y, yaw) of the epochs that left the window, in order"""
     tag_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     bias_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    """of the bias states, at the last update"""
+    """of the shared states (the accelerometer biases, then the wheel scale), at the last update"""
     disagreement: dict[int, int] = field(default_factory=dict)
     """per tag slot: consecutive updates in which most of its bearings were Huber-active"""
     resets: int = 0
@@ -360,20 +371,39 @@ class SlidingWindow:
         return self.prior
 
     @property
-    def biases(self) -> int:
-        """Bias states: a body-frame and a world-frame accelerometer bias, 2D each (or none)."""
+    def accel_biases(self) -> int:
+        """Accelerometer bias states: a body-frame and a world-frame bias, 2D each (or none)."""
         return 4 if self.settings.accel_bias else 0
 
     @property
+    def scale(self) -> bool:
+        """Whether the window estimates the wheel scale (the last shared state)."""
+        return self.settings.wheel_scale and self.settings.wheel_scale_std > 0
+
+    @property
+    def biases(self) -> int:
+        """States shared by the window, after the tags: the accelerometer biases, then the wheel scale."""
+        return self.accel_biases + self.scale
+
+    @property
     def shape(self) -> Shape:
-        return Shape(len(self.epochs), self.slots, len(self.tag_ids), self.biases)
+        return Shape(len(self.epochs), self.slots, len(self.tag_ids), self.biases, self.scale)
 
     def tag_positions(self) -> np.ndarray:
         e = 4 * len(self.epochs)
         return self.x[e : e + 2 * len(self.tag_ids)].reshape(-1, 2)
 
     def bias(self) -> np.ndarray:
-        """The bias states' estimate: [body x, body y, world x, world y] (m/s^2), or none."""
+        """The accelerometer bias states' estimate: [body x, body y, world x, world y] (m/s^2), or none."""
+        start = len(self.x) - self.biases
+        return self.x[start : start + self.accel_biases]
+
+    def wheel_scale(self) -> float:
+        """The wheel scale state's estimate: the fraction by which the wheel odometry over-reads (the
+        true speed is the reading times 1 - this), 0 when not estimated."""
+        return float(self.x[-1]) if self.scale else 0.0
+
+    def _shared(self) -> np.ndarray:
         return self.x[len(self.x) - self.biases :]
 
     def poses(self) -> list[tuple[int, float, float, float]]:
@@ -411,19 +441,23 @@ class SlidingWindow:
             state = np.zeros(4)
             if self.prior is None:
                 info = np.diag([s.gauge_std_m**-2] * 2 + [s.initial_velocity_std_m_s**-2] * 2 + [0.0] * self.biases)
-                if self.biases:
-                    info[4:, 4:] = self._bias_prior(yaw, levelled_std_m_s2)
+                if self.accel_biases:
+                    info[4:8, 4:8] = self._bias_prior(yaw, levelled_std_m_s2)
+                if self.scale:
+                    info[-1, -1] = s.wheel_scale_std**-2
                 self.prior = Prior(info, np.zeros(len(info)), np.zeros(len(info)))
                 self.x = np.zeros(self.biases)
         else:
             if edge is None:
                 raise ValueError("an epoch after the first needs its odometry edge")
-            if not self.biases and edge.bias_jacobian.size:
+            if not self.accel_biases and edge.bias_jacobian.size:
                 edge = Edge(edge.dt, edge.delta, edge.covariance)
-            if edge.bias_jacobian.shape != (4, self.biases):
-                raise ValueError(f"an edge's bias Jacobian is {edge.bias_jacobian.shape}, not (4, {self.biases})")
+            if edge.bias_jacobian.shape != (4, self.accel_biases):
+                raise ValueError(f"an edge's bias Jacobian is {edge.bias_jacobian.shape}, not (4, {self.accel_biases})")
+            if self.scale:  # the odometry does not move with the wheel scale
+                edge = Edge(edge.dt, edge.delta, edge.covariance, np.pad(edge.bias_jacobian, ((0, 0), (0, 1))))
             last = self.x[4 * (len(self.epochs) - 1) : 4 * len(self.epochs)]
-            delta = edge.delta - edge.bias_jacobian @ self.bias()
+            delta = edge.delta - edge.bias_jacobian @ self._shared()
             state = np.concatenate([last[0:2] + last[2:4] * edge.dt + delta[2:4], last[2:4] + delta[0:2]])
             self.edges.append(edge)
         tags = self.tag_positions()
@@ -442,23 +476,40 @@ class SlidingWindow:
                 kept.append((stamp_ns, candidates[j], raw_std[j], jumps[j]))
                 self.heard[t] = self.heard.get(t, 0) + 1
                 del kept[:-SEARCH_HISTORY]
-        self.x = np.concatenate([self.x[: 4 * len(self.epochs)], state, tags.ravel(), self.bias()])
+        self.x = np.concatenate([self.x[: 4 * len(self.epochs)], state, tags.ravel(), self._shared()])
         epoch = Epoch(
             stamp_ns, yaw, np.array(slots, dtype=int), candidates, candidate_std, jumps, messages=list(messages or [])
         )
-        forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
-        if s.nonholonomic:
-            epoch.velocity_info = np.outer(side, side) / s.lateral_std_m_s**2
-        if turning_in_place and s.turns_in_place:
-            epoch.velocity_info = epoch.velocity_info + np.eye(2) / s.zero_velocity_std_m_s**2
-        if speed_m_s is not None:
-            var = s.wheel_speed_std_m_s**2 + (s.wheel_scale_std * speed_m_s) ** 2
-            epoch.velocity_info = epoch.velocity_info + np.outer(forward, forward) / var
-            epoch.velocity_linear = forward * speed_m_s / var
+        epoch.velocity_info, epoch.velocity_linear = self._velocity_terms(yaw, speed_m_s, turning_in_place)
         self.epochs.append(epoch)
         if len(self.epochs) > s.window:
             self._marginalize_oldest()
         self.slots = max(len(e.tags) for e in self.epochs) or 1
+
+    def _velocity_terms(
+        self, yaw: float, speed_m_s: float | None, turning_in_place: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """An epoch's (W, w) over its velocity (and the wheel scale s): no sideways motion, zero
+        velocity when turning in place, and the wheel speed z. With the scale a state, the speed
+        along the heading is z (1 - s): the row (f'v + z s - z) / std is linear in the states."""
+        s = self.settings
+        width = 2 + self.scale
+        info, linear = np.zeros((width, width)), np.zeros(width)
+        forward, side = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        if s.nonholonomic:
+            info[:2, :2] += np.outer(side, side) / s.lateral_std_m_s**2
+        if turning_in_place and s.turns_in_place:
+            info[:2, :2] += np.eye(2) / s.zero_velocity_std_m_s**2
+        if speed_m_s is not None:
+            if self.scale:
+                row = np.concatenate([forward, [speed_m_s]]) / s.wheel_speed_std_m_s
+                info += np.outer(row, row)
+                linear += row * speed_m_s / s.wheel_speed_std_m_s
+            else:
+                var = s.wheel_speed_std_m_s**2 + (s.wheel_scale_std * speed_m_s) ** 2
+                info[:2, :2] += np.outer(forward, forward) / var
+                linear[:2] += forward * speed_m_s / var
+        return info, linear
 
     def _bias_prior(self, yaw: float, levelled_std_m_s2: float) -> np.ndarray:
         """Information on [body bias, world bias] at the start: each within `accel_bias_std_m_s2`, or,
@@ -719,8 +770,8 @@ class SlidingWindow:
         bias = x[self.shape.bias_index]
         r = np.einsum("nij,nj->ni", model.edge_l, x[model.pairs]) + model.edge_bias @ bias - model.edge_delta
         odometry = 0.5 * float(np.sum(np.einsum("nij,nj->ni", model.edge_whiten, r) ** 2))
-        v = x[: 4 * len(self.epochs)].reshape(-1, 4)[:, 2:4]
-        wheel = float(0.5 * np.einsum("ni,nij,nj->", v, model.velocity_info, v) - np.sum(model.velocity_linear * v))
+        y = x[velocity_columns(self.shape)]
+        wheel = float(0.5 * np.einsum("ni,nij,nj->", y, model.velocity_info, y) - np.sum(model.velocity_linear * y))
         p = self._prior
         d = x[model.prior_index] - p.mean
         return (
@@ -743,7 +794,7 @@ class SlidingWindow:
         model = self._model()
         c = np.zeros(shape.states)
         c[model.prior_index] = p.info @ p.mean - p.grad
-        c[: 4 * shape.epochs].reshape(-1, 4)[:, 2:4] += model.velocity_linear
+        np.add.at(c, velocity_columns(shape), model.velocity_linear)
         base: dict[str, Any] = dict(
             prior_info=p.info,
             velocity_info=model.velocity_info,
@@ -866,8 +917,7 @@ class SlidingWindow:
                 axis=1,
             )
             blocks.append((edge, np.stack([e.block for e in self.edges])))
-        velocity = 4 * np.arange(shape.epochs)[:, None] + np.array([2, 3])
-        blocks.append((velocity, np.stack([e.velocity_info for e in self.epochs])))
+        blocks.append((velocity_columns(shape), np.stack([e.velocity_info for e in self.epochs])))
         flat = np.concatenate(
             [(idx.reshape(-1, idx.shape[-1], 1) * n + idx.reshape(-1, 1, idx.shape[-1])).ravel() for idx, _ in blocks]
         )
@@ -921,8 +971,9 @@ class SlidingWindow:
         p = self._prior
         info = p.info.copy()
         grad = p.info @ (x[own] - p.mean) + p.grad
-        info[2:4, 2:4] += old.velocity_info
-        grad[2:4] += old.velocity_info @ x[2:4] - old.velocity_linear
+        wheel = np.array([2, 3] + [len(own) - 1] * self.scale)  # the oldest epoch's velocity_columns, in `own`
+        info[np.ix_(wheel, wheel)] += old.velocity_info
+        grad[wheel] += old.velocity_info @ x[own][wheel] - old.velocity_linear
         if len(old.tags):
             delta = x[4 * e : 4 * e + 2 * nt].reshape(-1, 2)[old.tags] - x[0:2]
             r, jb = angle_residuals(delta, old.bearing, old.std, s.min_range_m)
@@ -949,7 +1000,8 @@ class SlidingWindow:
         new_cov = jac @ cov @ jac.T
         new_cov[:4, :4] += edge.covariance[np.ix_(PV_FROM_VP, PV_FROM_VP)]
         walk = 4 + 2 * nt + np.arange(nb)
-        new_cov[walk, walk] += s.accel_bias_walk_m_s2_rts**2 * edge.dt
+        rates = np.array([s.accel_bias_walk_m_s2_rts] * self.accel_biases + [s.wheel_scale_walk_rts] * self.scale)
+        new_cov[walk, walk] += rates**2 * edge.dt
         new_mean = jac @ mean
         new_mean[:4] += edge.delta[PV_FROM_VP]
         new_info = np.linalg.inv(new_cov)

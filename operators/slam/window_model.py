@@ -8,7 +8,8 @@ tests/test_window_model.py solves windows captured from real runs both ways and 
 difference; `slam`'s `batch: true` solves with this model.
 
     min   1/2 |R (x_P - 0)|^2 - c'x                      prior (H = R'R over the prior's states)
-        + 1/2 sum_k v_k' W_k v_k                         wheel speed information per epoch
+        + 1/2 sum_k y_k' W_k y_k                         wheel speed information per epoch,
+                                                         y_k = v_k (and the wheel scale s)
         + 1/2 |rho|^2                                    whitened odometry residuals
         + sum_i ( 1/2 n_i^2 + M t_i ) + sum_i w_i h_i    Huber split, cheirality hinge
     s.t.  v_k+1 - v_k + J_e,v b - C_e,v rho_e = dv_e     each odometry edge e = (k, k+1),
@@ -33,6 +34,7 @@ from rover.operators.slam.window_program import (
     edge_matrix,
     prior_indices,
     slot_columns,
+    velocity_columns,
 )
 
 TOLERANCE = 1e-9
@@ -65,8 +67,10 @@ class WindowModel:
 
         self.prior_root = cp.Parameter((len(self.prior_index), len(self.prior_index)), name="R")
         self.c = cp.Parameter(shape.states, name="c")
-        self.wheel_root = [cp.Parameter(e, name=f"W_root_{k}") for k in range(4)]
-        """the rows of each epoch's 2x2 W_k = S_k'S_k, S_k = [[s0, s1], [s2, s3]]"""
+        self.wheel_columns = velocity_columns(shape)
+        w = self.wheel_columns.shape[1]
+        self.wheel_root = [[cp.Parameter(e, name=f"S_{i}{j}") for j in range(w)] for i in range(w)]
+        """the entries of each epoch's W_k = S_k'S_k over y_k (its velocity, and the wheel scale)"""
         self.dt = cp.Parameter(max(edges, 1), name="dt")
         self.chol = [[cp.Parameter(max(edges, 1), name=f"C_{i}{j}") for j in range(4)] for i in range(4)]
         self.delta = cp.Parameter((max(edges, 1), 4), name="delta")
@@ -85,8 +89,8 @@ class WindowModel:
         # the square roots' images as variables: parameters then enter constraints only, and the
         # objective's quadratic part is parameter-free (what CVXPY's QP path needs to stay DPP)
         prior = cp.Variable(len(self.prior_index), name="R x_P")
-        wheel = cp.Variable((e, 2), name="S_k v_k")
-        s0, s1, s2, s3 = self.wheel_root
+        wheel = cp.Variable((e, w), name="S_k y_k")
+        wheel_states = [x[self.wheel_columns[:, j]] for j in range(w)]
         objective = (
             0.5 * cp.sum_squares(prior)
             - self.c @ x
@@ -99,8 +103,10 @@ class WindowModel:
         constraints = [
             prior == self.prior_root @ x[self.prior_index],
             *([] if edges else [rho == 0]),
-            wheel[:, 0] == cp.multiply(s0, velocity[0]) + cp.multiply(s1, velocity[1]),
-            wheel[:, 1] == cp.multiply(s2, velocity[0]) + cp.multiply(s3, velocity[1]),
+            *(
+                wheel[:, i] == sum(cp.multiply(self.wheel_root[i][j], wheel_states[j]) for j in range(w))
+                for i in range(w)
+            ),
             h >= 0,
         ]
         if edges:
@@ -133,9 +139,11 @@ class WindowModel:
         e = self.shape.epochs
         self.prior_root.value = _square_root(d.prior_info)
         self.c.value = d.c
-        roots = np.array([_square_root(w) for w in d.velocity_info]) if e else np.zeros((0, 2, 2))
-        for k, (i, j) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
-            self.wheel_root[k].value = roots[:, i, j]
+        w = self.wheel_columns.shape[1]
+        roots = np.array([_square_root(info) for info in d.velocity_info]) if e else np.zeros((0, w, w))
+        for i, row in enumerate(self.wheel_root):
+            for j, root in enumerate(row):
+                root.value = roots[:, i, j]
         if len(d.edge_l):
             dt = -d.edge_l[:, 2, 2]
             if not np.array_equal(d.edge_l, edge_matrix(dt)):

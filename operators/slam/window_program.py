@@ -66,7 +66,10 @@ class Shape:
     """AoA slots per epoch"""
     tags: int
     biases: int = 0
-    """accelerometer bias states, after the tags (0: the bias is not estimated)"""
+    """states shared by the whole window, after the tags: the accelerometer biases, then the wheel
+    scale (0: none estimated)"""
+    scale: bool = False
+    """the last shared state is the wheel odometry's scale error, which every epoch's wheel term holds"""
 
     @property
     def states(self) -> int:
@@ -102,6 +105,15 @@ def prior_indices(shape: Shape) -> np.ndarray:
     return np.concatenate([np.arange(4), 4 * shape.epochs + np.arange(2 * shape.tags + shape.biases)])
 
 
+def velocity_columns(shape: Shape) -> np.ndarray:
+    """Per epoch, the states its wheel term covers (epochs, 2 or 3): its velocity, and the wheel
+    scale when the window estimates it."""
+    vel = 4 * np.arange(shape.epochs)[:, None] + np.array([2, 3])
+    if not shape.scale:
+        return vel
+    return np.concatenate([vel, np.full((shape.epochs, 1), shape.states - 1)], axis=1)
+
+
 def slot_columns(shape: Shape) -> np.ndarray:
     """Per slot, the state columns of its row: the epoch's position, then every tag's position."""
     epoch = np.repeat(np.arange(shape.epochs), shape.slots)
@@ -118,7 +130,8 @@ class UpdateData:
     prior_info: np.ndarray
     """H over prior_indices"""
     velocity_info: np.ndarray
-    """(epochs, 2, 2) information on each epoch's velocity (wheel odometry; zero without)"""
+    """(epochs, w, w) information on each epoch's velocity_columns (wheel odometry, the no-sideways
+    and turn-in-place terms; zero without)"""
     c: np.ndarray
     """linear term over all states"""
     edge_l: np.ndarray
@@ -161,9 +174,10 @@ class WindowProgram:
         pri = prior_indices(shape)
         upper = pri[:, None] <= pri[None, :]
         self.prior_upper = upper.ravel()
-        vel = 4 * np.arange(shape.epochs)[:, None] + 2
-        vel_rows = np.concatenate([vel, vel, vel + 1], axis=1).ravel()
-        vel_cols = np.concatenate([vel, vel + 1, vel + 1], axis=1).ravel()
+        vel = velocity_columns(shape)
+        self.vel_upper = np.triu_indices(vel.shape[1])
+        vel_rows = vel[:, self.vel_upper[0]].ravel()
+        vel_cols = vel[:, self.vel_upper[1]].ravel()
         p_rows = np.concatenate(
             [
                 np.repeat(pri, len(pri))[self.prior_upper],
@@ -225,8 +239,7 @@ class WindowProgram:
     def solve(self, d: UpdateData) -> tuple[np.ndarray, int]:
         """Minimize for one update; returns the states x and the iteration count."""
         r = self.shape.rows
-        vi = d.velocity_info
-        velocity = np.stack([vi[:, 0, 0], vi[:, 0, 1], vi[:, 1, 1]], axis=1).ravel()
+        velocity = d.velocity_info[:, self.vel_upper[0], self.vel_upper[1]].ravel()
         p = self.p_pattern.data(np.concatenate([d.prior_info.ravel()[self.prior_upper], velocity, self.p_tail]))
         q = np.concatenate([-d.c, np.zeros(self.n0 - self.rho0 + r), np.full(r, d.huber_m), d.hinge])
         li, lj = self.l_index
