@@ -30,7 +30,7 @@ from rover.errors import BadInput, OutputFailed
 from rover.evaluation.figures import FIGURE_FILES, write_figures
 from rover.evaluation.metrics import Truth, evaluate, poses_of_messages
 from rover.formats.atomic_file import remove_outputs, write_aside
-from rover.formats.run_dir import RUN_FILE, load_truth, record
+from rover.formats.run_dir import RUN_FILE, load_truth, record, tag_entry
 from rover.messages import stamp_ns
 from rover.operator import COMPLETE, In, Operator, RunOutcome
 
@@ -116,7 +116,7 @@ class RunOutputs(Operator):
         self.final: list[Any] = []
         self.live: list[Any] = []
         self.tags: dict[int, _TagRecord] = {}
-        self.history: list[tuple[int, int, float, float, bool]] = []
+        self.history: list[tuple[int, int, float, float, bool, float, float, float, float]] = []
         self.aoa: list[tuple[int, int, float, float]] = []
         self.timing: dict[str, list[float]] = {}
         self.written: list[Path] = []
@@ -155,7 +155,7 @@ class RunOutputs(Operator):
                 self.unresolved += 1
         else:
             for tag in msg.tags:
-                self.history.append((stamp_ns(msg), tag.id, tag.position.x, tag.position.y, tag.observable))
+                self.history.append(tag_entry(stamp_ns(msg), tag))
                 record = self.tags.setdefault(tag.id, _TagRecord())
                 record.channel = record.channel or tag.channel
                 record.last = tag

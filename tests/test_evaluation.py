@@ -15,7 +15,7 @@ import pytest
 from conftest import run_rover
 
 from rover.cli.commands import main
-from rover.evaluation.metrics import Poses2D, fit_rigid, trajectory_errors
+from rover.evaluation.metrics import Poses2D, Rigid2D, RunRecord, Truth, fit_rigid, published_honesty, trajectory_errors
 
 T0 = 1_700_000_000.0
 
@@ -120,6 +120,45 @@ def make_run(tmp_path: Path) -> tuple[Path, Path, Path]:
     tags = tmp_path / "tags_truth.csv"
     tags.write_text("id,channel,x,y,z,nlos\n1,149,2.0,3.0,0,0\n2,153,-1.0,1.0,0,1\n")
     return run, reference, tags
+
+
+def test_published_estimates_are_judged_in_their_own_covariance():
+    """Every estimate published as localized counts, in the standard deviations of the covariance
+    it was published with (along its major axis here: 4 sigma is 0.4 m on a 10 cm std), LOS and
+    NLOS apart; one not localized yet, or of a tag the truth does not know, does not count."""
+    stretched = np.array([[0.01, 0.0], [0.0, 0.0001]])  # 10 cm along x, 1 cm along y
+    rows = [  # (id, error along x, error along y, observable)
+        *[(4, 0.1, 0.0, True)] * 8,  # 1 sigma
+        (4, 0.4, 0.0, True),  # 4 sigma
+        (4, 0.0, 0.04, True),  # 4 sigma along the narrow axis: 4 cm
+        (4, 5.0, 0.0, False),  # not yet localized: not published as known
+        (1, 0.0, 0.005, True),  # 0.5 sigma
+        (9, 3.0, 3.0, True),  # a tag the truth does not know
+    ]
+    where = {1: np.array([2.0, 3.0]), 4: np.array([-1.0, 1.0]), 9: np.array([0.0, 0.0])}
+    ids = np.array([r[0] for r in rows])
+    xy = np.array([where[r[0]] + [r[1], r[2]] for r in rows])
+    empty = Poses2D(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0))
+    run = RunRecord(
+        empty,
+        empty,
+        np.zeros(0, int),
+        np.zeros((0, 2)),
+        np.zeros((0, 2, 2)),
+        tag_history=(
+            np.arange(len(rows), dtype=np.int64),
+            ids,
+            xy,
+            np.array([r[3] for r in rows]),
+            np.repeat(stretched[None], len(rows), axis=0),
+        ),
+        aoa=(np.zeros(0, np.int64), np.zeros(0, int), np.zeros(0), np.zeros(0)),
+    )
+    truth = Truth(empty, {1: (where[1], False), 4: (where[4], True)})
+    honesty = published_honesty(run, truth, Rigid2D(np.eye(2), np.zeros(2)))
+    assert honesty["nlos"]["estimates"] == 10 and honesty["nlos"]["beyond_3_sigma"] == pytest.approx(0.2)
+    assert honesty["nlos"]["sigmas_median"] == pytest.approx(1.0)
+    assert honesty["los"] == {"estimates": 1, "sigmas_median": pytest.approx(0.5), "beyond_3_sigma": 0.0}
 
 
 def test_rover_eval_agrees_with_evo(tmp_path):

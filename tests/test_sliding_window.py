@@ -77,9 +77,15 @@ def test_a_wheel_scale_error_is_estimated_through_the_marginalization():
     scale; with the error taken for noise instead, the wheels pull the path out by their 4%."""
     sc = scene(seconds=20.0)
     measured = angles(sc, noise_deg=1.0, seed=5)
-    loose = dict(EXACT_IMU, window=15, wheel_speed_std_m_s=1e-3)
     (w, final), (plain, pulled) = (
-        estimate(sc, WindowSettings(**loose, wheel_scale=on), measured, 1.0, wheel_reads=1.04) for on in (True, False)
+        estimate(
+            sc,
+            WindowSettings(**EXACT_IMU, window=15, wheel_speed_std_m_s=1e-3, wheel_scale=on),
+            measured,
+            1.0,
+            wheel_reads=1.04,
+        )
+        for on in (True, False)
     )
     std = math.sqrt(w.bias_covariance[-1, -1])
     assert abs(w.wheel_scale() - (1 - 1 / 1.04)) < max(3 * std, 1e-3) and std < 0.003

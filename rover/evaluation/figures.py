@@ -74,7 +74,7 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
     ax.legend()
     written.append(_save(fig, out / "robot_error.png", plt))
 
-    stamps, ids, xy, observable = run.tag_history
+    stamps, ids, xy, observable, _cov = run.tag_history
     aoa_stamps, aoa_ids, _angles, _stds = run.aoa
     fig, ax = plt.subplots(figsize=(8, 3.5))
     for tag_id, (where, nlos) in sorted(truth.tags.items()):

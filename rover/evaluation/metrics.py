@@ -153,8 +153,8 @@ class RunRecord:
     tag_xy: np.ndarray
     """final tag estimates (nan where never localized)"""
     tag_cov: np.ndarray
-    tag_history: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-    """(stamp_ns, id, xy (n, 2), observable) of every tag estimate published"""
+    tag_history: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    """(stamp_ns, id, xy (n, 2), observable, covariance (n, 2, 2)) of every tag estimate published"""
     aoa: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     """(stamp_ns, tag id, robot-frame angle, reported std) of every AoA"""
 
@@ -218,6 +218,7 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict[str
     for kind, flag in (("los", False), ("nlos", True)):
         errors = [t["error_m"] for t in tags.values() if t["nlos"] == flag and "error_m" in t]
         metrics[f"{kind}_tags_mean_m"] = float(np.mean(errors)) if errors else None
+    metrics["published"] = published_honesty(run, truth, start)
     error, aoa_nlos, std = aoa_errors(run, truth)
     if len(error):
         metrics["aoa"] = {
@@ -226,6 +227,28 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict[str
             "nlos": angle_stats(error[aoa_nlos], std[aoa_nlos]),
         }
     return metrics
+
+
+def published_honesty(run: RunRecord, truth: Truth, start: Rigid2D) -> dict[str, dict[str, Any]]:
+    """How honest the covariance of every tag estimate the run published as localized was, LOS and
+    NLOS tags apart: how many standard deviations of its own covariance each was from the truth
+    (`start` maps the truth into the estimate's frame). A 2-D Gaussian's: median 1.18, 1.1% beyond 3."""
+    stamps, ids, xy, observable, cov = run.tag_history
+    out: dict[str, dict[str, Any]] = {}
+    for kind, flag in (("los", False), ("nlos", True)):
+        mine = observable & np.array([int(i) in truth.tags and truth.tags[int(i)][1] == flag for i in ids], bool)
+        if not mine.any():
+            out[kind] = {"estimates": 0}
+            continue
+        where = start.apply(np.array([truth.tags[int(i)][0] for i in ids[mine]]))
+        sigmas = np.array([mahalanobis(e, c) for e, c in zip(xy[mine] - where, cov[mine], strict=True)], dtype=float)
+        sigmas = np.where(np.isnan(sigmas), np.inf, sigmas)
+        out[kind] = {
+            "estimates": int(mine.sum()),
+            "sigmas_median": float(np.median(sigmas)),
+            "beyond_3_sigma": float(np.mean(sigmas > 3)),
+        }
+    return out
 
 
 def mahalanobis(error: np.ndarray, cov: np.ndarray) -> float | None:
@@ -287,6 +310,12 @@ def render(metrics: dict[str, Any]) -> str:
         f"LOS tags mean {cm(metrics['los_tags_mean_m'])} (paper {cm(PAPER_LOS_TAGS_MEAN_M)}), "
         f"NLOS tags mean {cm(metrics['nlos_tags_mean_m'])}"
     )
+    for kind, p in metrics.get("published", {}).items():
+        if p["estimates"]:
+            lines.append(
+                f"published {kind.upper():<4} estimates {p['estimates']}: median {p['sigmas_median']:.2f} sigma, "
+                f"{p['beyond_3_sigma']:.1%} beyond 3 sigma (a 2-D Gaussian's: 1.18, 1.1%)"
+            )
     if "aoa" in metrics:
         for kind, a in metrics["aoa"].items():
             if a["count"]:

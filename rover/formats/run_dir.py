@@ -6,7 +6,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import get_args
+from typing import Any, get_args
 
 import numpy as np
 
@@ -56,12 +56,14 @@ def _optional_float(row: dict[str, str], column: str, where: str) -> float:
     return csv_float(row, column, where) if row.get(column, "").strip() else math.nan
 
 
-def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]], list[tuple[int, int, float, float]]]:
+def _read_results(
+    path: Path,
+) -> tuple[list[tuple[int, int, float, float, bool, float, float, float, float]], list[tuple[int, int, float, float]]]:
     """Tag estimates over time and the AoAs from results.mcap (empty when the file is absent): the
     AoAs as the SLAM used them (`/rover/bearings`, those it resolved) when the run recorded them."""
     from rover.formats.bag import BagReader
 
-    history: list[tuple[int, int, float, float, bool]] = []
+    history: list[tuple[int, int, float, float, bool, float, float, float, float]] = []
     aoa: dict[str, list[tuple[int, int, float, float]]] = {"/rover/aoa": [], "/rover/bearings": []}
     resolved_recorded = False
     if not path.exists():
@@ -71,7 +73,7 @@ def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]]
             msg = bag.decode(m, RESULT_TYPES[m.topic])
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             if m.topic == "/rover/tags":
-                history += [(stamp, t.id, t.position.x, t.position.y, t.observable) for t in msg.tags]
+                history += [tag_entry(stamp, t) for t in msg.tags]
             elif m.topic == "/rover/bearings":
                 resolved_recorded = True
                 if msg.chosen >= 0:
@@ -81,14 +83,20 @@ def _read_results(path: Path) -> tuple[list[tuple[int, int, float, float, bool]]
     return history, aoa["/rover/bearings"] if resolved_recorded else aoa["/rover/aoa"]
 
 
+def tag_entry(stamp: int, tag: Any) -> tuple[int, int, float, float, bool, float, float, float, float]:
+    """One published tag estimate (a rover_msgs/msg/Tag) as a row of RunRecord.tag_history."""
+    c00, c01, c10, c11 = (float(v) for v in tag.covariance_xy)
+    return (stamp, int(tag.id), float(tag.position.x), float(tag.position.y), bool(tag.observable), c00, c01, c10, c11)
+
+
 def record(
     final: Poses2D,
     live: Poses2D,
     tags: tuple[np.ndarray, np.ndarray, np.ndarray],
-    history: list[tuple[int, int, float, float, bool]],
+    history: list[tuple[int, int, float, float, bool, float, float, float, float]],
     aoa: list[tuple[int, int, float, float]],
 ) -> RunRecord:
-    h = np.array(history, dtype=object).reshape(-1, 5)
+    h = np.array(history, dtype=object).reshape(-1, 9)
     a = np.array(aoa, dtype=object).reshape(-1, 4)
     return RunRecord(
         final,
@@ -99,6 +107,7 @@ def record(
             h[:, 1].astype(int),
             h[:, 2:4].astype(float).reshape(-1, 2),
             h[:, 4].astype(bool),
+            h[:, 5:9].astype(float).reshape(-1, 2, 2),
         ),
         aoa=(a[:, 0].astype(np.int64), a[:, 1].astype(int), a[:, 2].astype(float), a[:, 3].astype(float)),
     )
