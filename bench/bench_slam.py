@@ -142,14 +142,34 @@ MG_M_S2 = 9.80665e-3
 
 def observability(items, op: Slam) -> dict:
     """What made scale and bias observable in a run: the epochs flagged turning in place (zero
-    velocity), and the accelerometer bias states' estimate and std at the end (mg)."""
+    velocity), the accelerometer bias states' estimate and std at the end (mg), and the wheel
+    scale's (the fraction by which the wheels over-read)."""
     pre = [m for topic, _s, m in items if topic == "/rover/preintegration"]
     w = op.window
     out: dict = {"turning_in_place_s": float(sum(m.dt for m in pre if m.turning_in_place))}
-    if w.biases and w.bias_covariance.size:
+    std = np.sqrt(np.maximum(np.diag(w.bias_covariance), 0.0)) if w.bias_covariance.size else None
+    if w.accel_biases and std is not None:
         out["bias_mg"] = (w.bias() / MG_M_S2).tolist()
-        out["bias_std_mg"] = (np.sqrt(np.maximum(np.diag(w.bias_covariance), 0.0)) / MG_M_S2).tolist()
+        out["bias_std_mg"] = (std[: w.accel_biases] / MG_M_S2).tolist()
+    if w.scale and std is not None:
+        out["wheel_scale"] = w.wheel_scale()
+        out["wheel_scale_std"] = float(std[-1])
     return out
+
+
+def true_wheel_scale(items, truth: Poses2D) -> float | None:
+    """The fraction by which the run's wheels over-read (the wheel_scale state's truth): the wheel
+    speeds regressed on the true forward speed where the robot moves, s = 1 - 1/k."""
+    odom = [(stamp, m.twist.twist.linear.x) for topic, stamp, m in items if topic == "/odom"]
+    if not odom:
+        return None
+    stamps, speed = np.array([o[0] for o in odom], float), np.array([o[1] for o in odom])
+    t = truth.stamp_ns.astype(float)
+    velocity = np.gradient(truth.xy, t / 1e9, axis=0)
+    forward = np.interp(stamps, t, velocity[:, 0] * np.cos(truth.yaw) + velocity[:, 1] * np.sin(truth.yaw))
+    moving = forward > 0.05
+    k = float(np.sum(speed[moving] * forward[moving]) / np.sum(forward[moving] ** 2))
+    return 1 - 1 / k
 
 
 def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:
@@ -252,7 +272,10 @@ def main() -> int:
             for seed, items, truth, tags, nlos in per_seed:
                 out, cpu_s, op, latency = run_slam(items, params)
                 row = score(out, truth, tags, nlos)
-                row.update(seed=seed, cpu_s=cpu_s, observability=observability(items, op), pose_ms=tails(latency))
+                seen = observability(items, op)
+                if "wheel_scale" in seen:
+                    seen["wheel_scale_true"] = true_wheel_scale(items, truth)
+                row.update(seed=seed, cpu_s=cpu_s, observability=seen, pose_ms=tails(latency))
                 rows.append(row)
             figures["variants"][name] = rows
             print(f"{name}:")
@@ -272,6 +295,10 @@ def main() -> int:
                     if "bias_mg" in seen
                     else ""
                 )
+                if "wheel_scale" in seen:
+                    bias += f"; wheel scale {seen['wheel_scale']:+.2%} +- {seen['wheel_scale_std']:.2%}"
+                    if seen.get("wheel_scale_true") is not None:
+                        bias += f" (true {seen['wheel_scale_true']:+.2%})"
                 print(
                     f"  seed {r['seed']}: robot mean {r['robot_mean_m'] * 100:.1f} cm, median "
                     f"{r['robot_median_m'] * 100:.1f} cm{live}; tags {tag_text}; {r['cpu_s']:.1f} s CPU; "
