@@ -1,15 +1,16 @@
 """The convex program of one sliding-window update, built once per shape and re-solved with Clarabel.
 
 Variables z = [x, rho, n, t, h]: x the window's states (per epoch position and velocity in x/y,
-then the tags' positions, then the accelerometer bias states b shared by the window); rho the
-whitened odometry residuals; per AoA slot a Huber split (n, t) and a cheirality slack h. The program is
+then the tags' positions, then the states b shared by the window: the accelerometer biases and,
+with wheel odometry, the wheel scale); rho the whitened odometry residuals; per AoA slot a Huber
+split (n, t) and a cheirality slack h. The program is
 
     min  0.5 x'Hx - c'x + 0.5 |rho|^2 + sum_i 0.5 huber_M(a_i'x + k_i) + sum_i hinge_i h_i
     s.t. L_e x + J_e b - C_e rho_e = y_e   (each odometry edge; C_e the Cholesky factor of its covariance,
                                             J_e how its deltas move with the bias)
          h_i >= max(0, -g_i'x)
 
-with (H, c) the prior and huber_M(r) = min_n n^2 + 2M|r - n| written with |r - n| <= t, so the
+with (H, c) the prior and the wheel terms (each epoch's over velocity_columns) and huber_M(r) = min_n n^2 + 2M|r - n| written with |r - n| <= t, so the
 program stays a conic QP. The odometry enters in square-root form because the IMU is extremely
 precise over one epoch (information up to 1e12): squared into P it breaks the interior-point
 method's accuracy, as constraint rows it does not.
