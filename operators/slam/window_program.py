@@ -10,10 +10,11 @@ split (n, t) and a cheirality slack h. The program is
                                             J_e how its deltas move with the bias)
          h_i >= max(0, -g_i'x)
 
-with (H, c) the prior and the wheel terms (each epoch's over velocity_columns) and huber_M(r) = min_n n^2 + 2M|r - n| written with |r - n| <= t, so the
-program stays a conic QP. The odometry enters in square-root form because the IMU is extremely
-precise over one epoch (information up to 1e12): squared into P it breaks the interior-point
-method's accuracy, as constraint rows it does not.
+with (H, c) the prior and the wheel terms (each epoch's over velocity_columns), and
+huber_M(r) = min_n n^2 + 2M|r - n| written with |r - n| <= t, so the program stays a conic QP.
+The odometry enters in square-root form because the IMU is extremely precise over one epoch
+(information up to 1e12): squared into P it breaks the interior-point method's accuracy, as
+constraint rows it does not.
 
 The sparsity is a function of the window's shape only (epochs, slots per epoch, tags): a slot
 without a bearing has zero coefficients, so one factorization pattern serves every update.
