@@ -236,16 +236,15 @@ def cmd_status(args: argparse.Namespace) -> int:
         tls = TlsFiles(spec.security.ca, spec.security.monitor.cert, spec.security.monitor.key)
     with StatusClient(spec.name, endpoints, args.timeout, tls) as client:
 
-        def snapshot() -> tuple[dict[str, HostStatus], list[str]]:
-            statuses, notes = client.poll()  # also measures each host's clock offset: client.clocks
+        def snapshot(first: bool = False) -> tuple[dict[str, HostStatus], list[str]]:
+            # also measures each host's clock offset: client.clocks; the first waits for an answer
+            statuses, notes = client.first_poll() if first else client.poll()
             return statuses, notes + ([f"{client.errors} error replies"] if client.errors else [])
 
         def as_json(current: dict[str, HostStatus], previous: dict[str, HostStatus], notes: list[str]) -> str:
             return json.dumps(report(current, previous, expected, notes, client.clocks.best()), allow_nan=False)
 
-        current, notes = snapshot()
-        if not current:
-            raise client.no_answer()
+        current, notes = snapshot(first=True)
         previous: dict[str, HostStatus] = {}
         if args.once:  # rates from two snapshots --interval apart
             time.sleep(args.interval)

@@ -328,7 +328,7 @@ def serve_status(port: int, clocks: dict[str, Callable[[], int]]) -> Iterator[No
     """A router listening on `port`, answering the status of each host in `clocks` (a second later at
     each query), read at the moment it answers from that host's clock, as `Runner.status` does."""
     session = open_session(SessionSpec(listen=[f"tcp/127.0.0.1:{port}"], label="status"))
-    queryables = []
+    queryables: list[zenoh.Queryable[None]] = []
     for host, clock in clocks.items():
         queries = itertools.count()
 
@@ -404,6 +404,47 @@ def test_a_host_without_clock_is_noted():
         queryable.undeclare()
         session.close()
     assert notes == ["host old does not send its clock (an older rover): its offset is unknown"]
+
+
+def test_a_host_that_is_up_but_not_yet_answering_is_waited_for():
+    """The host's router accepts the client before the host declares its status: the first query
+    is answered by nobody, and `first_poll` asks again instead of reporting nobody running."""
+    port = free_port()
+    session = open_session(SessionSpec(listen=[f"tcp/127.0.0.1:{port}"], label="late"))
+    queryables: list[zenoh.Queryable[None]] = []
+    try:
+        with StatusClient("toy", [f"tcp/127.0.0.1:{port}"], 5) as client:
+            answers = []
+            poll = client.poll
+
+            def poll_then_declare() -> tuple[dict[str, HostStatus], list[str]]:
+                answers.append(poll())
+                if not queryables:  # the host declares its status after the first query
+                    reply = snapshot(host="late").to_json()
+                    key = status_key("toy", "late")
+                    queryables.append(session.declare_queryable(key, lambda q: q.reply(key, reply)))
+                return answers[-1]
+
+            client.poll = poll_then_declare  # type: ignore[method-assign]
+            statuses, _ = client.first_poll()
+        assert answers[0] == ({}, []) and list(statuses) == ["late"]
+    finally:
+        for queryable in queryables:
+            queryable.undeclare()
+        session.close()
+
+
+def test_a_host_that_never_answers_is_reported_after_the_timeout():
+    port = free_port()
+    session = open_session(SessionSpec(listen=[f"tcp/127.0.0.1:{port}"], label="silent"))
+    try:
+        with (
+            StatusClient("toy", [f"tcp/127.0.0.1:{port}"], 0.5) as client,
+            pytest.raises(TransportError, match="no host of pipeline toy answered"),
+        ):
+            client.first_poll()
+    finally:
+        session.close()
 
 
 def test_nothing_listening_is_a_transport_error_naming_the_endpoints():

@@ -67,7 +67,8 @@ class StatusClient:
     """One Zenoh session to a running pipeline, opened once and queried at every refresh.
 
     Opening retries every endpoint until `timeout_s`; when none is reachable it raises the same
-    TransportError as a query nobody answers (`no_answer`)."""
+    TransportError as a query nobody answers (`no_answer`). The same `timeout_s`, counted from the
+    start, bounds `first_poll`'s wait for a first answer."""
 
     def __init__(self, pipeline: str, endpoints: list[str], timeout_s: float = 5.0, tls: TlsFiles | None = None):
         self.pipeline = pipeline
@@ -79,18 +80,23 @@ class StatusClient:
         """error replies to the last query"""
         self.clocks = Clocks()
         """each host's clock offset from this machine's, measured by `poll`"""
+        self._deadline = time.monotonic() + timeout_s
         self._session = self._open()
 
     def _open(self) -> zenoh.Session:
-        deadline = time.monotonic() + self.timeout_s
         while True:
             try:
-                return zenoh.open(_client_config(self.endpoints, max(deadline - time.monotonic(), RETRY_S), self.tls))
+                timeout_s = max(self._deadline - time.monotonic(), RETRY_S)
+                return zenoh.open(_client_config(self.endpoints, timeout_s, self.tls))
             except zenoh.ZError as exc:
                 log.debug("cannot connect to %s: %s", ", ".join(self.endpoints), exc)
-            if time.monotonic() + RETRY_S >= deadline:
-                raise self.no_answer()
-            time.sleep(RETRY_S)
+            self.wait_to_retry()
+
+    def wait_to_retry(self) -> None:
+        """Wait a retry's pause, or raise `no_answer` when the timeout would pass during it."""
+        if time.monotonic() + RETRY_S >= self._deadline:
+            raise self.no_answer()
+        time.sleep(RETRY_S)
 
     def no_answer(self) -> TransportError:
         """The error for a pipeline none of whose hosts answered."""
@@ -146,6 +152,18 @@ class StatusClient:
                 self.clocks.add(status.host, clock_offset(status.clock_ns, reply.sent_ns, reply.received_ns))
         return statuses, notes
 
+    def first_poll(self) -> tuple[dict[str, HostStatus], list[str]]:
+        """`poll` until some host answers; `no_answer` once the timeout has passed without one.
+
+        A host's router accepts connections a moment before the host declares its status (it is
+        still building its operators then): a query in between is answered by nobody at once,
+        which is not yet "nobody is running"."""
+        while True:
+            statuses, notes = self.poll()
+            if statuses:
+                return statuses, notes
+            self.wait_to_retry()
+
     def close(self) -> None:
         self._session.close()
 
@@ -159,9 +177,11 @@ class StatusClient:
 
 
 def query_status(pipeline: str, endpoints: list[str], timeout_s: float) -> list[bytes]:
-    """The status payloads of a pipeline's hosts, asked once; TransportError when no host answers."""
+    """The status payloads of a pipeline's hosts, asked until one answers; TransportError when
+    none has within `timeout_s`."""
     with StatusClient(pipeline, endpoints, timeout_s) as client:
-        payloads = client.query()
-        if not payloads:
-            raise client.no_answer()
-        return payloads
+        while True:
+            payloads = client.query()
+            if payloads:
+                return payloads
+            client.wait_to_retry()
