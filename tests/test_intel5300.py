@@ -396,6 +396,21 @@ def test_a_cut_short_record_next_to_a_0xc1_record_is_told_too(k):
     np.testing.assert_array_equal(out.csi, intact.csi)
 
 
+def test_a_real_log_interleaving_0xc1_records_frames_as_one_read_record_by_record():
+    """LGTM's log alternates 0xC1 and 0xBB records: the whole file (its runs taken at once, each
+    0xC1 record bridged) frames as a naive walk does, and as a stream cut at random points does
+    (each cut sends the records around it through the record-by-record path)."""
+    data = min((reference_data() / "csi" / "lgtm").glob("*.dat")).read_bytes()
+    recs = records_of(data)
+    starts = np.cumsum([0] + [len(r) for r in recs[:-1]])
+    whole = decode_log(data)
+    assert whole.offset.tolist() == [int(a) for a, r in zip(starts, recs, strict=True) if r[2] == 0xBB]
+    assert (whole.n_skipped, whole.n_corrupt, whole.n_garbage_bytes) == (1025, 0, 0)
+    rng = np.random.default_rng(2016)
+    for _ in range(20):
+        assert_same(streamed(data, rng.integers(0, len(data) + 1, 50).tolist()), whole)
+
+
 def test_what_framing_cannot_tell_is_decoded_as_it_is(sample):
     """The documented limit: a record cut short and followed by bytes that start no provable record
     keeps those bytes as its tail. It counts as valid; only its last subcarriers are wrong."""

@@ -211,48 +211,44 @@ def _value_bits(nrx: int, ntx: int, sources: tuple[int, ...]) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class _WordLayout:
-    """Where _unpack finds each value of one record shape in its table of 16-bit words."""
+class _ByteLayout:
+    """Where _unpack finds each value of one record shape in a record's payload bytes."""
 
     span: int
     """payload bytes read"""
-    n_even: int
-    """words at even byte offsets; those at odd offsets follow them"""
-    column: np.ndarray
-    """word holding each value"""
-    shift: np.ndarray
-    """bits to shift that word right by (uint16)"""
+    byte: np.ndarray
+    """the byte each value starts in"""
+    down: np.ndarray
+    """bits to shift that byte right by (uint8: the offset's remainder)"""
+    up: np.ndarray
+    """bits to shift the next byte left by (uint8: 8 - down; 8 shifts it out)"""
 
 
 @lru_cache(maxsize=256)
-def _word_layout(nrx: int, ntx: int, sources: tuple[int, ...]) -> _WordLayout:
+def _byte_layout(nrx: int, ntx: int, sources: tuple[int, ...]) -> _ByteLayout:
     """The layout for one record shape and antenna order (cached: a log has a handful)."""
     bit = _value_bits(nrx, ntx, sources)
     byte = bit >> 3
-    span = int(byte.max()) + 2
-    n_even = span // 2
-    column = np.where(byte % 2 == 0, byte // 2, n_even + byte // 2)
-    shift = (bit & 7).astype(np.uint16)
-    column.setflags(write=False)
-    shift.setflags(write=False)
-    return _WordLayout(span, n_even, column, shift)
+    down = (bit & 7).astype(np.uint8)
+    up = (8 - down).astype(np.uint8)
+    for array in (byte, down, up):
+        array.setflags(write=False)
+    return _ByteLayout(int(byte.max()) + 2, byte, down, up)
 
 
 def _unpack(buf: np.ndarray, payload_at: np.ndarray, nrx: int, ntx: int, sources: tuple[int, ...]) -> np.ndarray:
     """(n, 30 * nrx * ntx * 2) float64 CSI values of records of one shape and antenna order.
 
-    Each value is the byte at its bit offset and the next one as a little-endian 16-bit word,
-    shifted right by the offset's remainder and cut to int8 (what read_bfee.c does per value).
-    The words at every byte offset are two zero-copy views of the payload bytes, at even and at
-    odd offsets, joined in one table.
+    Each value is the byte at its bit offset shifted right by the offset's remainder, with the
+    next byte's low bits above it, cut to int8 (what read_bfee.c does per value); the shifts are
+    uint8 arithmetic, which drops the bits above the eighth. Only the final conversion is float64.
     """
-    layout = _word_layout(nrx, ntx, sources)
+    layout = _byte_layout(nrx, ntx, sources)
     rows = sliding_window_view(buf, layout.span)[payload_at]
-    even = rows[:, : 2 * layout.n_even].view("<u2")
-    odd = rows[:, 1 : 1 + (layout.span - 1) // 2 * 2].view("<u2")
-    words = np.concatenate([even, odd], axis=1)
-    values: np.ndarray = np.take(words, layout.column, axis=1) >> layout.shift
-    return values.astype(np.uint8).view(np.int8).astype(np.float64)
+    low = np.take(rows, layout.byte, axis=1)
+    high = np.take(rows, layout.byte + 1, axis=1)
+    values = (low >> layout.down) | (high << layout.up)
+    return values.view(np.int8).astype(np.float64)
 
 
 def _scale_factors(
@@ -440,8 +436,9 @@ class _FramingPass:
     Anything else starts garbage, skipped up to the next consistent beamforming header, so no
     valid record after damage is lost. Every decision uses only bytes present (or knows, when
     `final`, that none follow), so chunking never changes the result. Runs of back-to-back
-    valid records, the usual case, are taken in one step, so the Python loop turns once per
-    damage (or record of another code), not per record.
+    valid records, the usual case, are taken in one step, and so are runs whose beamforming
+    records are each followed by one record of FRAME_CODE (real logs of the CSI Tool interleave
+    them: LGTM's alternate 0xBB and 0xC1), so the Python loop turns once per damage, not per record.
     """
 
     def __init__(self, buf: np.ndarray, cur: _Cursor, final: bool):
@@ -451,9 +448,28 @@ class _FramingPass:
         """Positions below this are known to start a valid record or not."""
         self.starts = _valid_starts(buf, cur.keep_from(), self.decided)
         stops = self.starts + LENGTH_BYTES + ((buf[self.starts].astype(np.int64) << 8) | buf[self.starts + 1])
-        self.breaks = np.flatnonzero(stops[:-1] != self.starts[1:])
-        """i where record i does not end where record i + 1 starts"""
+        gaps = np.flatnonzero(stops[:-1] != self.starts[1:])
+        bridged = self._bridged(stops[gaps], self.starts[gaps + 1])
+        self.breaks = gaps[~bridged]
+        """i where record i does not end where record i + 1 starts, nor where one FRAME_CODE record
+        that ends there starts"""
+        self.bridges = gaps[bridged]
+        """i where one FRAME_CODE record lies between record i and record i + 1"""
         self.out = _Framing()
+
+    def _bridged(self, stop: np.ndarray, nxt: np.ndarray) -> np.ndarray:
+        """Whether a FRAME_CODE record starts at each `stop` and ends at the matching `nxt`.
+
+        Framed one by one, such a record proves the beamforming record before it whole (_chains)
+        and is then skipped as a record of another code, proven whole by the start at `nxt`: in a
+        run it counts as one skipped record and changes nothing else. No valid start lies between
+        `stop` and `nxt` (they are consecutive starts' neighbours) and both are decided."""
+        buf = self.buf
+        fits = stop + LENGTH_BYTES + 1 <= nxt
+        at = np.where(fits, stop, 0)
+        length = (buf[at].astype(np.int64) << 8) | buf[at + 1]
+        found: np.ndarray = fits & (buf[at + LENGTH_BYTES] == FRAME_CODE) & (at + LENGTH_BYTES + length == nxt)
+        return found
 
     def run(self) -> _Framing:
         """Advance the cursor as far as the bytes present decide."""
@@ -470,6 +486,7 @@ class _FramingPass:
                 last = int(self.breaks[b]) if b < len(self.breaks) else len(self.starts) - 1
                 if last > k:
                     self.out.bfee_runs.append(self.starts[k:last])
+                    self.out.skipped += int(np.searchsorted(self.bridges, last) - np.searchsorted(self.bridges, k))
                     cur.pos = int(self.starts[last])
             if not self._one(is_start):
                 return self.out
