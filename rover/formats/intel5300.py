@@ -247,7 +247,7 @@ def _unpack(buf: np.ndarray, payload_at: np.ndarray, nrx: int, ntx: int, sources
     rows = sliding_window_view(buf, layout.span)[payload_at]
     low = np.take(rows, layout.byte, axis=1)
     high = np.take(rows, layout.byte + 1, axis=1)
-    values = (low >> layout.down) | (high << layout.up)
+    values: np.ndarray = (low >> layout.down) | (high << layout.up)
     return values.view(np.int8).astype(np.float64)
 
 
