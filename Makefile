@@ -37,7 +37,11 @@ netns-tools:
 test: lint netns-tools
 	$(BIN)/python -m pytest -q --durations=15
 
-bench: $(STAMP)
+$(VENV)/.bench: pyproject.toml $(STAMP)
+	$(BIN)/python -m pip install --quiet -e ".[test,bench]"
+	touch $@
+
+bench: $(VENV)/.bench
 	$(BIN)/python bench/run_all.py
 
 check: $(STAMP)

@@ -195,6 +195,19 @@ def _antenna_sources(perm: np.ndarray, nrx: np.ndarray) -> np.ndarray:
     return sources
 
 
+@lru_cache(maxsize=1)
+def _layout_tables() -> tuple[np.ndarray, np.ndarray]:
+    """perm (256, 3) of every antenna_sel, and the sources (1024, 3) of every antenna_sel x 4 + Nrx:
+    what antenna_perm and _antenna_sources give, looked up per record instead of computed."""
+    sel = np.arange(256)
+    perm = antenna_perm(sel).astype(np.uint8)
+    nrx = np.tile(np.arange(4), 256)
+    sources = _antenna_sources(np.repeat(perm, 4, axis=0), np.maximum(nrx, 1))
+    for table in (perm, sources):
+        table.setflags(write=False)
+    return perm, sources
+
+
 def _value_bits(nrx: int, ntx: int, sources: tuple[int, ...]) -> np.ndarray:
     """Payload bit offset of every int8 of one record shape, in output order.
 
@@ -218,6 +231,8 @@ class _ByteLayout:
     """payload bytes read"""
     byte: np.ndarray
     """the byte each value starts in"""
+    following: np.ndarray
+    """the byte after it"""
     down: np.ndarray
     """bits to shift that byte right by (uint8: the offset's remainder)"""
     up: np.ndarray
@@ -231,24 +246,48 @@ def _byte_layout(nrx: int, ntx: int, sources: tuple[int, ...]) -> _ByteLayout:
     byte = bit >> 3
     down = (bit & 7).astype(np.uint8)
     up = (8 - down).astype(np.uint8)
-    for array in (byte, down, up):
+    following = byte + 1
+    for array in (byte, following, down, up):
         array.setflags(write=False)
-    return _ByteLayout(int(byte.max()) + 2, byte, down, up)
+    return _ByteLayout(int(byte.max()) + 2, byte, following, down, up)
 
 
-def _unpack(buf: np.ndarray, payload_at: np.ndarray, nrx: int, ntx: int, sources: tuple[int, ...]) -> np.ndarray:
-    """(n, 30 * nrx * ntx * 2) float64 CSI values of records of one shape and antenna order.
+UNPACK_BLOCK_BYTES = 1 << 19
+"""values unpacked per step: the step's intermediates stay in the CPU's cache (a whole 50,000-record
+log at once went through memory several times: 3x2 records took 60% longer)"""
+
+
+def _unpack(
+    out: np.ndarray,
+    rows: np.ndarray | None,
+    buf: np.ndarray,
+    payload_at: np.ndarray,
+    nrx: int,
+    ntx: int,
+    sources: tuple[int, ...],
+) -> None:
+    """Write the 30 * nrx * ntx * 2 CSI values (float64) of the records of one shape and antenna order
+    whose payloads start at `payload_at` into out[rows] (out[:n] when `rows` is None).
 
     Each value is the byte at its bit offset shifted right by the offset's remainder, with the
     next byte's low bits above it, cut to int8 (what read_bfee.c does per value); the shifts are
-    uint8 arithmetic, which drops the bits above the eighth. Only the final conversion is float64.
+    uint8 arithmetic, which drops the bits above the eighth. Only the final store is float64.
     """
     layout = _byte_layout(nrx, ntx, sources)
-    rows = sliding_window_view(buf, layout.span)[payload_at]
-    low = np.take(rows, layout.byte, axis=1)
-    high = np.take(rows, layout.byte + 1, axis=1)
-    values: np.ndarray = (low >> layout.down) | (high << layout.up)
-    return values.view(np.int8).astype(np.float64)
+    windows = sliding_window_view(buf, layout.span)
+    n, width = len(payload_at), len(layout.byte)
+    block = max(1, min(n, UNPACK_BLOCK_BYTES // width))
+    low, high = np.empty((block, width), np.uint8), np.empty((block, width), np.uint8)
+    for i in range(0, n, block):
+        payloads = windows[payload_at[i : i + block]]
+        lo, hi = low[: len(payloads)], high[: len(payloads)]
+        np.take(payloads, layout.byte, axis=1, out=lo)
+        np.take(payloads, layout.following, axis=1, out=hi)
+        np.right_shift(lo, layout.down, out=lo)
+        np.left_shift(hi, layout.up, out=hi)
+        np.bitwise_or(lo, hi, out=lo)
+        target = slice(i, i + len(payloads)) if rows is None else rows[i : i + len(payloads)]
+        out[target] = lo.view(np.int8)
 
 
 def _scale_factors(
@@ -298,35 +337,35 @@ def _empty_records(scaled: bool) -> CsiRecords:
 def _decode(buf: np.ndarray, code_at: np.ndarray, scaled: bool) -> CsiRecords:
     """Decode the beamforming records whose code bytes are at `code_at` (consistent and complete).
 
-    Records are grouped by shape and antenna order, a handful of groups at most; within a group,
-    and for the scaling over all records, every step is one numpy operation.
+    Records are grouped by antenna_sel, Nrx and Ntx (their values' layout), a handful of groups
+    at most, each unpacked straight into its rows of the result; the scaling is over all records.
     """
     n = len(code_at)
     if n == 0:
         return _empty_records(scaled)
     head = sliding_window_view(buf, HEADER_BYTES)[code_at + 1].view(_HEADER).reshape(n)
     nrx, ntx = head["nrx"], head["ntx"]
-    perm = antenna_perm(head["antenna_sel"])
-    sources = _antenna_sources(perm, nrx)
+    perm_table, source_table = _layout_tables()
+    perm = perm_table[head["antenna_sel"]]
+    # records of one (antenna_sel, Nrx, Ntx) share their layout: a small integer per record
+    layout = (head["antenna_sel"].astype(np.int64) * 4 + nrx) * 4 + ntx
+    kinds = np.flatnonzero(np.bincount(layout, minlength=256 * 16))
     rssi = np.stack([head["rssi_a"], head["rssi_b"], head["rssi_c"]], axis=1)
-    # one integer per (Nrx, Ntx, sources): all entries are below 4, so base-4 digits
-    group = np.column_stack([nrx, ntx, sources]) @ 4 ** np.arange(4, -1, -1)
-    _, first, inverse = np.unique(group, return_index=True, return_inverse=True)
-
-    def group_csi(rows: np.ndarray | slice, row: int) -> np.ndarray:
-        r, t = int(nrx[row]), int(ntx[row])
-        values = _unpack(buf, code_at[rows] + 1 + HEADER_BYTES, r, t, tuple(sources[row].tolist()))
-        return values.view(np.complex128).reshape(-1, SUBCARRIERS, r, t)
-
-    if len(first) == 1:
-        csi = group_csi(slice(None), 0)
-    else:
-        csi = np.zeros((n, SUBCARRIERS, int(nrx.max()), int(ntx.max())), dtype=np.complex128)
-        for g, row in enumerate(first):
-            rows = np.flatnonzero(inverse == g)
-            csi[rows, :, : nrx[row], : ntx[row]] = group_csi(rows, row)
+    shape = (int(nrx.max()), int(ntx.max()))
+    csi = np.zeros((n, SUBCARRIERS, *shape), dtype=np.complex128)
+    flat = csi.reshape(n, -1).view(np.float64)
+    for kind in kinds.tolist():
+        r, t = (kind >> 2) & 3, kind & 3
+        rows = None if len(kinds) == 1 else np.flatnonzero(layout == kind)
+        payload_at = (code_at if rows is None else code_at[rows]) + 1 + HEADER_BYTES
+        sources = tuple(source_table[kind >> 2].tolist())
+        if (r, t) == shape:
+            _unpack(flat, rows, buf, payload_at, r, t, sources)
+        else:  # a smaller shape goes into the corner of each record's (30, Nrx, Ntx)
+            values = np.empty((len(payload_at), SUBCARRIERS * r * t * 2))
+            _unpack(values, None, buf, payload_at, r, t, sources)
+            csi[rows, :, :r, :t] = values.view(np.complex128).reshape(-1, SUBCARRIERS, r, t)
     if scaled:
-        flat = csi.reshape(n, -1).view(np.float64)
         flat *= _scale_factors(np.einsum("ij,ij->i", flat, flat), rssi, head["noise"], head["agc"], nrx, ntx)[:, None]
     return CsiRecords(
         head["timestamp_low"].copy(),
@@ -337,7 +376,7 @@ def _decode(buf: np.ndarray, code_at: np.ndarray, scaled: bool) -> CsiRecords:
         head["noise"].copy(),
         head["agc"].copy(),
         head["antenna_sel"].copy(),
-        perm.astype(np.uint8),
+        perm,
         head["rate"].copy(),
         csi,
         offset=code_at - LENGTH_BYTES,
@@ -372,9 +411,14 @@ def _valid_starts(buf: np.ndarray, lo: int, hi: int) -> np.ndarray:
     if hi <= lo:
         return np.zeros(0, dtype=np.int64)
     p = lo + np.flatnonzero(buf[lo + LENGTH_BYTES : hi + LENGTH_BYTES] == BFEE_CODE)
-    length = (buf[p].astype(np.int64) << 8) | buf[p + 1]
-    code_at = p + LENGTH_BYTES
-    found: np.ndarray = p[_consistent_headers(buf, code_at) & (length == 1 + HEADER_BYTES + _len_field(buf, code_at))]
+    # the length prefix agreeing with `len` first: it leaves about one in 65,536 of the 0xBB bytes
+    # inside payloads, so the header's other checks look at records only
+    length = (buf[p].astype(np.int32) << 8) | buf[p + 1]
+    field = buf[p + LENGTH_BYTES + _LEN_AT].astype(np.int32) | (
+        buf[p + LENGTH_BYTES + _LEN_AT + 1].astype(np.int32) << 8
+    )
+    p = p[length == 1 + HEADER_BYTES + field]
+    found: np.ndarray = p[_consistent_headers(buf, p + LENGTH_BYTES)]
     return found
 
 
