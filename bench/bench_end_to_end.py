@@ -1,5 +1,7 @@
 """The whole default pipeline on the simulated `paper` run: real-time factor in one process and with
-the three-host layout on loopback (three processes), and the run's errors.
+the three-host layout on loopback (three processes), the run's errors, and where the one-process
+run's time went per operator (run.json's `profile`: decoding, handler, encoding, sending, the
+runtime's share, waiting for input, closing).
 Goals (issue 7): >= 20x faster than real time; three hosts within 20% of one process."""
 
 from __future__ import annotations
@@ -61,6 +63,7 @@ def main() -> int:
         if any(codes):
             raise SystemExit(f"three-host run failed: exit codes {codes}")
         metrics = json.loads((tmp / "one" / "metrics.json").read_text())
+        profile = json.loads((tmp / "one" / "run.json").read_text())["profile"]
         same = all(
             (tmp / "one" / n).read_bytes() == (tmp / "three" / n).read_bytes() for n in ("trajectory.tum", "tags.csv")
         )
@@ -75,6 +78,7 @@ def main() -> int:
         "robot_mean_m": metrics["robot"]["trajectory.tum"]["unaligned"]["mean_m"],
         "los_tags_mean_m": metrics["los_tags_mean_m"],
         "nlos_tags_mean_m": metrics["nlos_tags_mean_m"],
+        "profile": profile,
     }
     print(
         f"paper run ({data_s:.0f} s of data): one process {one_s:.1f} s ({data_s / one_s:.1f}x real time), "
@@ -85,9 +89,24 @@ def main() -> int:
         f"errors: robot mean {figures['robot_mean_m'] * 100:.1f} cm, "
         f"LOS tags {figures['los_tags_mean_m'] * 100:.1f} cm, NLOS tag {figures['nlos_tags_mean_m'] * 100:.1f} cm"
     )
+    print_profile(profile, one_s)
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))
     return 0
+
+
+PARTS = ("decode", "handler", "encode", "send", "runtime", "idle", "close")
+
+
+def print_profile(profile: dict[str, dict[str, float]], run_s: float) -> None:
+    """Where the one-process run's time went, per operator thread (run.json's `profile`)."""
+    print(f"where the one-process run's {run_s:.1f} s went (wall-clock s per operator thread; threads overlap)")
+    print(f"{'operator':<16}" + "".join(f"{p:>9}" for p in PARTS))
+    rows = sorted(profile.items(), key=lambda kv: -kv[1]["handler_s"])
+    for name, parts in rows:
+        print(f"{name:<16}" + "".join(f"{parts[f'{p}_s']:>9.2f}" for p in PARTS))
+    totals = {p: sum(parts[f"{p}_s"] for parts in profile.values()) for p in PARTS}
+    print(f"{'all':<16}" + "".join(f"{totals[p]:>9.2f}" for p in PARTS))
 
 
 if __name__ == "__main__":

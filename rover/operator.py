@@ -115,6 +115,30 @@ class OperatorCounts:
 
 
 @dataclass(frozen=True)
+class OperatorProfile:
+    """Where one operator's thread spent its wall-clock seconds, so a run shows where time goes.
+
+    The parts add up to the thread's life. In one process the operators' threads share the
+    interpreter: time another thread held it counts where this one was waiting for it."""
+
+    decode_s: float = 0.0
+    """deserializing its inputs"""
+    handler_s: float = 0.0
+    """its handler (a source: producing its items, a wait on a device included)"""
+    encode_s: float = 0.0
+    """serializing what it emitted"""
+    send_s: float = 0.0
+    """putting that on Zenoh: in one process this runs the subscribers' enqueue, which waits while
+    an inbox downstream is full; toward another host it waits for credit"""
+    idle_s: float = 0.0
+    """waiting for input (its inbox empty)"""
+    runtime_s: float = 0.0
+    """the rest: attachments, event-time merging, watermarks, bookkeeping"""
+    close_s: float = 0.0
+    """its `close` after the run (finishing outputs, figures), in the main thread"""
+
+
+@dataclass(frozen=True)
 class LostHost:
     """A host of a distributed run that left before it was done, as this host saw it."""
 
@@ -136,6 +160,8 @@ class RunOutcome:
     """`time.monotonic()` by which closing must be done (after an interrupt); None: no limit"""
     lost: tuple[LostHost, ...] = ()
     """the hosts lost during a `partial` run"""
+    profile: Mapping[str, OperatorProfile] = field(default_factory=dict)
+    """per operator of this process that ran, where its time went (`close_s` is filled in for `report`)"""
 
     @property
     def keeps_outputs(self) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import threading
@@ -270,6 +271,32 @@ operators:
     assert proc.returncode == 0, proc.stderr
     assert "rover: WARNING: operator 'thin': dropped 4 messages of even rank\n" in proc.stderr
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 5
+
+
+def test_the_profile_says_where_each_operators_time_went(tmp_path):
+    """A sink that sleeps 20 ms per message shows it as handler time, the replay's sends wait on its
+    full inbox, and a sink that takes 0.1 s to close shows that as its close."""
+    dataset = write_imu_dataset(tmp_path / "short.mcap", 20)
+    pipeline = tmp_path / "slow.yaml"
+    pipeline.write_text(f"""\
+name: slow
+operators:
+  replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}
+  slow:   {{uses: toyops.Slow, inputs: {{imu: replay/imu}}, params: {{delay_s: 0.02}}, inbox: 2}}
+  probe:  {{uses: toyops.ProfileProbe, inputs: {{imu: replay/imu}}, params: {{path: profile.json, close_s: 0.1}}}}
+""")
+    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    profile = json.loads((tmp_path / "profile.json").read_text())
+    assert sorted(profile) == ["probe", "replay", "slow"]
+    slow, replay, probe = profile["slow"], profile["replay"], profile["probe"]
+    assert 0.4 <= slow["handler_s"] < 1.0, slow
+    assert slow["decode_s"] > 0 and replay["encode_s"] > 0 and replay["handler_s"] > 0, (slow, replay)
+    assert replay["send_s"] >= 0.2, replay  # 20 messages into an inbox of 2 drained at 50 Hz
+    assert probe["handler_s"] < 0.1 and probe["idle_s"] > 0.2, probe
+    assert probe["close_s"] >= 0.1 and slow["close_s"] < 0.05, (probe, slow)
+    for name, parts in profile.items():
+        assert all(v >= 0 for v in parts.values()), (name, parts)
 
 
 def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_path):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import threading
 import time
 from dataclasses import dataclass, field
@@ -203,3 +205,27 @@ class Fan(Operator):
     def on_input(self, port, msg, stamp_ns):
         for name in self.params.outputs:
             yield Emit(name, msg)
+
+
+@dataclass(frozen=True)
+class ProfileProbeParams:
+    path: str = "profile.json"
+    close_s: float = 0.1
+    """how long its `close` takes"""
+
+
+class ProfileProbe(Operator):
+    """A sink that takes `close_s` to close and writes the run's profile, as `report` is given it."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    Params = ProfileProbeParams
+
+    def on_input(self, port, msg, stamp_ns):
+        return ()
+
+    def close(self, outcome: RunOutcome = COMPLETE) -> None:
+        time.sleep(self.params.close_s)
+
+    def report(self, outcome: RunOutcome) -> None:
+        profile = {name: dataclasses.asdict(p) for name, p in outcome.profile.items()}
+        Path(self.params.path).write_text(json.dumps(profile))

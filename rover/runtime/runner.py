@@ -9,6 +9,7 @@ host leaves only when every host is done, so nothing in flight is cut off.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import queue
 import signal
@@ -25,7 +26,7 @@ import zenoh
 
 from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError, SpecError, TransportError
 from rover.messages import Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
-from rover.operator import Emit, Operator, OperatorCounts, RunOutcome, Source, Watermark
+from rover.operator import Emit, Operator, OperatorCounts, OperatorProfile, RunOutcome, Source, Watermark
 from rover.pipeline.validation import Node, Pipeline, host_links
 from rover.runtime.credit import Acks, Credits
 from rover.runtime.hosts import HostWatch, attribute_to_hubs, describe_loss
@@ -86,6 +87,32 @@ class Stats:
         if self.late:
             text += f"; late {fmt(self.late)}"
         return text
+
+
+@dataclass
+class Clock:
+    """A task's wall-clock nanoseconds by part (see OperatorProfile), kept by its own thread."""
+
+    decode: int = 0
+    handler: int = 0
+    encode: int = 0
+    send: int = 0
+    idle: int = 0
+    started: int = 0
+    ended: int = 0
+
+    def profile(self) -> OperatorProfile:
+        """The parts in seconds; the runtime's share is what the others leave of the thread's life."""
+        life = (self.ended or time.perf_counter_ns()) - self.started if self.started else 0
+        rest = life - (self.decode + self.handler + self.encode + self.send + self.idle)
+        return OperatorProfile(
+            decode_s=self.decode / 1e9,
+            handler_s=self.handler / 1e9,
+            encode_s=self.encode / 1e9,
+            send_s=self.send / 1e9,
+            idle_s=self.idle / 1e9,
+            runtime_s=max(rest, 0) / 1e9,
+        )
 
 
 class Output:
@@ -151,6 +178,7 @@ class Task:
         self.name = node.name
         self.op = op
         self.stats = Stats()
+        self.clock = Clock()
         self.stop = stop
         self.abort = abort
         self.error: BaseException | None = None
@@ -170,6 +198,7 @@ class Task:
         self.thread = threading.Thread(target=self._main, name=f"rover-{node.name}", daemon=True)
 
     def _main(self) -> None:
+        self.clock.started = time.perf_counter_ns()
         try:
             self.run()
         except BaseException as exc:  # noqa: BLE001 - reported by the runner as one line
@@ -181,6 +210,7 @@ class Task:
             for out in self.outputs.values():
                 with contextlib.suppress(zenoh.ZError):
                     out.end(cut)
+            self.clock.ended = time.perf_counter_ns()
             self.done.set()
 
     def cut_short(self) -> bool:
@@ -204,7 +234,16 @@ class Task:
     def run(self) -> None:
         raise NotImplementedError
 
+    def handle(self, handler: Callable[[], Iterable[Emit] | None], default_stamp: int) -> None:
+        """Call a handler and `publish` what it returned, its time counted as the handler's (less the
+        encoding and sending): a handler may be a generator, whose work happens as `publish` draws."""
+        clock = self.clock
+        start, coded = time.perf_counter_ns(), clock.encode + clock.send
+        self.publish(handler(), default_stamp)
+        clock.handler += time.perf_counter_ns() - start - (clock.encode + clock.send - coded)
+
     def publish(self, emitted: Iterable[Emit] | None, default_stamp: int) -> None:
+        clock = self.clock
         for item in emitted or ():
             port, msg, stamp = item
             out = self.outputs.get(port)
@@ -219,7 +258,12 @@ class Task:
                 stamp = stamp_ns(msg) if has_header(typename) else default_stamp
             if stamp < out.mark_ns:
                 self.stats.late[port] += 1
-            out.send(serialize(msg, typename), stamp)
+            start = time.perf_counter_ns()
+            payload = serialize(msg, typename)
+            encoded = time.perf_counter_ns()
+            out.send(payload, stamp)
+            clock.encode += encoded - start
+            clock.send += time.perf_counter_ns() - encoded
             self.stats.sent[port] += 1
 
     def advance(self, mark: float) -> None:
@@ -243,8 +287,12 @@ class SourceTask(Task):
 
     def run(self) -> None:
         clock = 0
-        for item in self.op.run(self.stop):
-            if self.abort.is_set():
+        items = iter(self.op.run(self.stop))
+        while True:
+            start = time.perf_counter_ns()
+            item = next(items, None)
+            self.clock.handler += time.perf_counter_ns() - start
+            if item is None or self.abort.is_set():
                 break
             if isinstance(item, Watermark):
                 clock = max(clock, item.stamp_ns)
@@ -258,7 +306,7 @@ class SourceTask(Task):
             self.advance(clock)
             if self.stop.is_set():
                 break
-        self.publish(self.op.on_end(), clock)
+        self.handle(self.op.on_end, clock)
 
 
 class OperatorTask(Task):
@@ -358,6 +406,7 @@ class OperatorTask(Task):
         if typename != self.wire_types[port]:
             self._drop(port, f"type {typename or 'unknown'} where {self.wire_types[port]} was expected")
             return
+        start = time.perf_counter_ns()
         if spec.raw:
             msg = Raw(typename, payload) if _plausible_cdr(payload, typename, stamp) else None
         else:
@@ -365,6 +414,7 @@ class OperatorTask(Task):
                 msg = deserialize(payload, typename)
             except Exception:  # noqa: BLE001 - any decoding failure of foreign bytes is a drop, never a crash
                 msg = None
+        self.clock.decode += time.perf_counter_ns() - start
         if msg is None:
             self._drop(port, f"bytes that do not decode as {typename or spec.type}")
             return
@@ -378,20 +428,23 @@ class OperatorTask(Task):
         while not merger.finished:
             if self.abort.is_set():
                 return
+            waiting = time.perf_counter_ns()
             try:
                 port, (encoding, payload, att) = self.inbox.get(timeout=POLL_S)
             except queue.Empty:
                 continue
+            finally:
+                self.clock.idle += time.perf_counter_ns() - waiting
             if self.acks is not None and not codec.is_control(att):
                 self.acks.took(port)
             self._accept(port, encoding, payload, att)
             for port, stamp, msg in merger.pop_ready():
                 if self.abort.is_set():
                     return
-                self.publish(op.on_input(port, msg, stamp), stamp)
+                self.handle(functools.partial(op.on_input, port, msg, stamp), stamp)
                 self.handled_ns = stamp
             self.advance(merger.safe_time() - op.lateness_s * 1e9)
-        self.publish(op.on_end(), self.last_stamp())
+        self.handle(op.on_end, self.last_stamp())
 
     def last_stamp(self) -> int:
         """The latest stamp sent on any output, for what `on_end` emits without one (0 before any)."""
@@ -538,12 +591,15 @@ class Runner:
             log.warning("operator %r is still in its handler: its outputs are not finished", name)
         closing = {name: op for name, op in ops.items() if name not in alive}
         # A run that never began writes nothing: its operators close as after a failure.
-        failures = self._each(closing, "close", outcome if began else replace(outcome, status="failed"))
+        closed_s: dict[str, float] = {}
+        failures = self._each(closing, "close", outcome if began else replace(outcome, status="failed"), closed_s)
         for name, problem in failures if error is not None else ():
             log.error("operator %r failed to close: %s", name, problem)
         if failures and error is None:
             error = OutputFailed("; ".join(f"operator {name!r}: {problem}" for name, problem in failures))
             outcome = self._outcome(error)
+        profile = {name: replace(p, close_s=closed_s.get(name, 0.0)) for name, p in outcome.profile.items()}
+        outcome = replace(outcome, profile=profile)
         reported = self._each(closing, "report", outcome) if began else []
         if reported and error is None:
             error = OutputFailed("; ".join(f"operator {name!r}: {problem}" for name, problem in reported))
@@ -584,6 +640,9 @@ class Runner:
             raise failed
 
     def _outcome(self, error: RoverError | None) -> RunOutcome:
+        return replace(self._ending(error), profile={t.name: t.clock.profile() for t in self.tasks})
+
+    def _ending(self, error: RoverError | None) -> RunOutcome:
         counts = {t.name: t.stats.counts(t.op.drops) for t in self.tasks}
         if error is not None:
             return RunOutcome("failed", str(error), counts)
@@ -612,14 +671,20 @@ class Runner:
         return f"stopped by {signal.Signals(self.interrupted).name}" if self.interrupted else "stopped"
 
     @staticmethod
-    def _each(ops: dict[str, Operator], hook: str, outcome: RunOutcome) -> list[tuple[str, str]]:
-        """Call `close` or `report` on every operator; the ones that raised, with their errors."""
+    def _each(
+        ops: dict[str, Operator], hook: str, outcome: RunOutcome, took_s: dict[str, float] | None = None
+    ) -> list[tuple[str, str]]:
+        """Call `close` or `report` on every operator (each one's wall-clock seconds into `took_s`);
+        the ones that raised, with their errors."""
         failed = []
         for name, op in ops.items():
+            start = time.perf_counter()
             try:
                 getattr(op, hook)(outcome)
             except Exception as exc:  # noqa: BLE001 - collected; the other operators still close
                 failed.append((name, _described(exc)))
+            if took_s is not None:
+                took_s[name] = time.perf_counter() - start
         return failed
 
     def _install_signals(self) -> dict[signal.Signals, _SignalHandler]:
