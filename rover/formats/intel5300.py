@@ -40,7 +40,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import ArrayLike
 
 BFEE_CODE = 0xBB
@@ -195,6 +194,12 @@ def _antenna_sources(perm: np.ndarray, nrx: np.ndarray) -> np.ndarray:
     return sources
 
 
+def _windows(buf: np.ndarray, width: int) -> np.ndarray:
+    """Every `width` consecutive bytes of `buf`, one row per start: a read-only view, no copy
+    (what sliding_window_view gives, at a tenth of its cost: a log decodes a few groups per call)."""
+    return np.ndarray((max(len(buf) - width + 1, 0), width), np.uint8, buf, 0, (1, 1))
+
+
 @lru_cache(maxsize=1)
 def _layout_tables() -> tuple[np.ndarray, np.ndarray]:
     """perm (256, 3) of every antenna_sel, and the sources (1024, 3) of every antenna_sel x 4 + Nrx:
@@ -274,7 +279,7 @@ def _unpack(
     uint8 arithmetic, which drops the bits above the eighth. Only the final store is float64.
     """
     layout = _byte_layout(nrx, ntx, sources)
-    windows = sliding_window_view(buf, layout.span)
+    windows = _windows(buf, layout.span)
     n, width = len(payload_at), len(layout.byte)
     block = max(1, min(n, UNPACK_BLOCK_BYTES // width))
     low, high = np.empty((block, width), np.uint8), np.empty((block, width), np.uint8)
@@ -343,7 +348,7 @@ def _decode(buf: np.ndarray, code_at: np.ndarray, scaled: bool) -> CsiRecords:
     n = len(code_at)
     if n == 0:
         return _empty_records(scaled)
-    head = sliding_window_view(buf, HEADER_BYTES)[code_at + 1].view(_HEADER).reshape(n)
+    head = _windows(buf, HEADER_BYTES)[code_at + 1].view(_HEADER).reshape(n)
     nrx, ntx = head["nrx"], head["ntx"]
     perm_table, source_table = _layout_tables()
     perm = perm_table[head["antenna_sel"]]
