@@ -1,7 +1,7 @@
 """The whole default pipeline on the simulated `paper` run: real-time factor in one process and with
 the three-host layout on loopback (three processes), the run's errors, and where the one-process
 run's time went per operator (run.json's `profile`: decoding, handler, encoding, sending, the
-runtime's share, waiting for input, closing).
+runtime's share, waiting for input, closing, and the thread's CPU time).
 Goals (issue 7): >= 20x faster than real time; three hosts within 20% of one process."""
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def main() -> int:
     return 0
 
 
-PARTS = ("decode", "handler", "encode", "send", "runtime", "idle", "close")
+PARTS = ("decode", "handler", "encode", "send", "runtime", "idle", "close", "cpu")
 
 
 def print_profile(profile: dict[str, dict[str, float]], run_s: float) -> None:

@@ -13,7 +13,8 @@ left in the folder, and a failed run leaves only `run.json`, which says how ever
 its `status` (complete, partial, interrupted, failed), the `reason`, the hosts `lost` during a
 partial run (each with its reason and the time it was noticed), what each operator received,
 sent and dropped, and where each operator of this process spent its time (`profile`: decoding,
-handler, encoding, sending, waiting for input, the runtime's share, and closing, in seconds).
+handler, encoding, sending, waiting for input, the runtime's share, closing, and its thread's CPU
+time, in seconds).
 """
 
 from __future__ import annotations

@@ -136,6 +136,9 @@ class OperatorProfile:
     """the rest: attachments, event-time merging, watermarks, bookkeeping"""
     close_s: float = 0.0
     """its `close` after the run (finishing outputs, figures), in the main thread"""
+    cpu_s: float = 0.0
+    """the CPU time its thread used: far below its busy parts when it mostly waited for the
+    interpreter, or for a device"""
 
 
 @dataclass(frozen=True)

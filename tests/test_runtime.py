@@ -295,6 +295,7 @@ operators:
     assert replay["send_s"] >= 0.2, replay  # 20 messages into an inbox of 2 drained at 50 Hz
     assert probe["handler_s"] < 0.1 and probe["idle_s"] > 0.2, probe
     assert probe["close_s"] >= 0.1 and slow["close_s"] < 0.05, (probe, slow)
+    assert 0 < slow["cpu_s"] < 0.2, slow  # sleeping is not computing
     for name, parts in profile.items():
         assert all(v >= 0 for v in parts.values()), (name, parts)
 

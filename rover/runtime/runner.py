@@ -100,6 +100,8 @@ class Clock:
     idle: int = 0
     started: int = 0
     ended: int = 0
+    cpu: int = 0
+    """the thread's CPU time when it ended (time.thread_time_ns)"""
 
     def profile(self) -> OperatorProfile:
         """The parts in seconds; the runtime's share is what the others leave of the thread's life."""
@@ -112,6 +114,7 @@ class Clock:
             send_s=self.send / 1e9,
             idle_s=self.idle / 1e9,
             runtime_s=max(rest, 0) / 1e9,
+            cpu_s=self.cpu / 1e9,
         )
 
 
@@ -210,7 +213,7 @@ class Task:
             for out in self.outputs.values():
                 with contextlib.suppress(zenoh.ZError):
                     out.end(cut)
-            self.clock.ended = time.perf_counter_ns()
+            self.clock.ended, self.clock.cpu = time.perf_counter_ns(), time.thread_time_ns()
             self.done.set()
 
     def cut_short(self) -> bool:
