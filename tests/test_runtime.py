@@ -13,7 +13,7 @@ import pytest
 import zenoh
 from conftest import free_port, popen_rover, read_bag, run_rover, write_imu_dataset
 
-from rover.messages import cdr_stamp_ns, header, make, serialize
+from rover.messages import cdr_stamp_ns, deserialize, header, make, serialize
 from rover.transport import codec, keys
 
 TOY = """\
@@ -298,6 +298,31 @@ operators:
     assert 0 < slow["cpu_s"] < 0.2, slow  # sleeping is not computing
     for name, parts in profile.items():
         assert all(v >= 0 for v in parts.values()), (name, parts)
+
+
+def test_an_operator_editing_its_input_changes_no_other_operators_input(tmp_path):
+    """`scale` multiplies each message it receives in place (the README's example) while `same`
+    forwards the very same messages untouched, in one process: what `same` sent is the dataset's
+    bytes, what `scale` sent is scaled. However messages are handed out, no edit leaks."""
+    dataset = write_imu_dataset(tmp_path / "imu.mcap", 200)
+    pipeline = tmp_path / "edit.yaml"
+    pipeline.write_text(f"""\
+name: edit
+operators:
+  replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}
+  scale:  {{uses: toyops.Scale, inputs: {{imu: replay/imu}}, params: {{gain: 2.0}}}}
+  same:   {{uses: toyops.Passthrough, inputs: {{imu: replay/imu}}}}
+  record: {{uses: recorder, inputs: {{scaled: scale/imu, same: same/imu}}, params: {{out: out}}}}
+""")
+    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    original = [data for topic, _t, data in read_bag(dataset) if topic == "/imu/data"]
+    recorded = read_bag(tmp_path / "out" / "results.mcap")
+    same = [data for topic, _t, data in recorded if topic.endswith("same")]
+    scaled = [deserialize(data, "sensor_msgs/msg/Imu") for topic, _t, data in recorded if topic.endswith("scaled")]
+    assert len(original) == 200 and same == original
+    z = [deserialize(data, "sensor_msgs/msg/Imu").angular_velocity.z for data in original]
+    assert [m.angular_velocity.z for m in scaled] == [2.0 * v for v in z]
 
 
 def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_path):

@@ -54,6 +54,23 @@ class Passthrough(Operator):
         yield Emit("imu", msg)
 
 
+@dataclass(frozen=True)
+class ScaleParams:
+    gain: float = 1.0
+
+
+class Scale(Operator):
+    """The README's example: edits its input message in place and sends it on."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    outputs = {"imu": Out("sensor_msgs/msg/Imu")}
+    Params = ScaleParams
+
+    def on_input(self, port, msg, stamp_ns):
+        msg.angular_velocity.z *= self.params.gain
+        yield Emit("imu", msg)
+
+
 class _Counting(Operator):
     """An IMU pass-through that counts the messages it has been given."""
 
