@@ -159,7 +159,7 @@ def observability(items, op: Slam) -> dict:
 
 def true_wheel_scale(items, truth: Poses2D) -> float | None:
     """The fraction by which the run's wheels over-read (the wheel_scale state's truth): the wheel
-    speeds regressed on the true forward speed where the robot moves, s = 1 - 1/k."""
+    speeds regressed on the true forward speed where the robot moves, z = (1 + s) u."""
     odom = [(stamp, m.twist.twist.linear.x) for topic, stamp, m in items if topic == "/odom"]
     if not odom:
         return None
@@ -169,7 +169,7 @@ def true_wheel_scale(items, truth: Poses2D) -> float | None:
     forward = np.interp(stamps, t, velocity[:, 0] * np.cos(truth.yaw) + velocity[:, 1] * np.sin(truth.yaw))
     moving = forward > 0.05
     k = float(np.sum(speed[moving] * forward[moving]) / np.sum(forward[moving] ** 2))
-    return 1 - 1 / k
+    return k - 1
 
 
 def score(out, truth: Poses2D, truth_tags: dict, nlos: set[int]) -> dict:

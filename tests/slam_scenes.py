@@ -51,9 +51,9 @@ def true_angle(sc: Scene, k: int, tag: int) -> float:
     return math.atan2(d[1], d[0]) - sc.yaw[k]
 
 
-def edge(sc: Scene, k: int, bias: np.ndarray | None = None) -> Edge:
+def edge(sc: Scene, k: int, bias: np.ndarray | None = None, covariance: np.ndarray = EXACT_COVARIANCE) -> Edge:
     """The exact odometry from epoch k-1 to k, plus what an accelerometer `bias` ([body x, body y,
-    world x, world y], m/s^2) adds to it."""
+    world x, world y], m/s^2) adds to it, said to be as uncertain as `covariance`."""
     dt = sc.t[k] - sc.t[k - 1]
     delta = np.concatenate(
         [sc.velocity[k] - sc.velocity[k - 1], sc.position[k] - sc.position[k - 1] - sc.velocity[k - 1] * dt]
@@ -61,7 +61,7 @@ def edge(sc: Scene, k: int, bias: np.ndarray | None = None) -> Edge:
     jacobian = bias_jacobian(sc.yaw[k - 1], sc.yaw[k], float(dt))
     if bias is not None:
         delta = delta + jacobian @ bias
-    return Edge(float(dt), delta, EXACT_COVARIANCE, jacobian)
+    return Edge(float(dt), delta, covariance, jacobian)
 
 
 def angles(sc: Scene, noise_deg: float = 0.0, outliers: float = 0.0, seed: int = 0) -> list[tuple[int, float]]:
@@ -86,11 +86,17 @@ def estimate(
     bias: np.ndarray | None = None,
     levelled_std_m_s2: float = 0.0,
     wheel_reads: float | None = None,
+    wheel_noise_m_s: float = 0.0,
+    seed: int = 0,
+    covariance: np.ndarray = EXACT_COVARIANCE,
 ) -> tuple[SlidingWindow, np.ndarray]:
-    """Run the window over the scene (its odometry with an accelerometer `bias`, see `edge`; with
-    `wheel_reads`, wheel odometry reading that many times the true speed); returns it and the robot
-    positions as finally estimated."""
+    """Run the window over the scene (its odometry with an accelerometer `bias` and said to be as
+    uncertain as `covariance`, see `edge`; with `wheel_reads`, wheel odometry reading that many times
+    the true speed, plus white noise of `wheel_noise_m_s` while moving, drawn from `seed`); returns it
+    and the robot positions as finally estimated."""
     w = SlidingWindow(settings)
+    speed = np.linalg.norm(sc.velocity, axis=1)
+    noise = np.random.default_rng(seed).normal(0.0, wheel_noise_m_s, len(speed)) * (speed > 0)
     for k, (tag, angle) in enumerate(measured):
         w.add_epoch(
             int(sc.t[k] * 1e9),
@@ -98,9 +104,9 @@ def estimate(
             [tag + 1],
             np.array([angle]),
             np.array([math.radians(std_deg)]),
-            edge(sc, k, bias) if k else None,
+            edge(sc, k, bias, covariance) if k else None,
             levelled_std_m_s2=levelled_std_m_s2,
-            speed_m_s=None if wheel_reads is None else wheel_reads * float(np.linalg.norm(sc.velocity[k])),
+            speed_m_s=None if wheel_reads is None else wheel_reads * float(speed[k]) + float(noise[k]),
         )
         if k % update_every == 0 or k == len(measured) - 1:
             w.find_tags()
