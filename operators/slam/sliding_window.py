@@ -538,9 +538,10 @@ class SlidingWindow:
         read = np.isfinite(z)
         row = np.where(read[:, None], np.concatenate([(1 + s0) * forward, u0[:, None]], axis=1), 0.0) / std
         target = np.where(read, z + u0 * s0, 0.0) / std
+        info, linear = row[:, :, None] * row[:, None, :], row * target[:, None]
         for k, e in enumerate(epochs):
-            e.velocity_info = e.constraint_info + np.outer(row[k], row[k])
-            e.velocity_linear = e.constraint_linear + row[k] * target[k]
+            e.velocity_info = e.constraint_info + info[k]
+            e.velocity_linear = e.constraint_linear + linear[k]
 
     def _bias_prior(self, yaw: float, levelled_std_m_s2: float) -> np.ndarray:
         """Information on [body bias, world bias] at the start: each within `accel_bias_std_m_s2`, or,
