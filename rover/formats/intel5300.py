@@ -236,12 +236,8 @@ class _ByteLayout:
     """payload bytes read"""
     byte: np.ndarray
     """the byte each value starts in"""
-    following: np.ndarray
-    """the byte after it"""
     down: np.ndarray
-    """bits to shift that byte right by (uint8: the offset's remainder)"""
-    up: np.ndarray
-    """bits to shift the next byte left by (uint8: 8 - down; 8 shifts it out)"""
+    """bits to shift the pair of that byte and the next right by (uint16: the offset's remainder)"""
 
 
 @lru_cache(maxsize=256)
@@ -249,17 +245,21 @@ def _byte_layout(nrx: int, ntx: int, sources: tuple[int, ...]) -> _ByteLayout:
     """The layout for one record shape and antenna order (cached: a log has a handful)."""
     bit = _value_bits(nrx, ntx, sources)
     byte = bit >> 3
-    down = (bit & 7).astype(np.uint8)
-    up = (8 - down).astype(np.uint8)
-    following = byte + 1
-    for array in (byte, following, down, up):
+    down = (bit & 7).astype(np.uint16)
+    for array in (byte, down):
         array.setflags(write=False)
-    return _ByteLayout(int(byte.max()) + 2, byte, following, down, up)
+    return _ByteLayout(int(byte.max()) + 2, byte, down)
 
 
 UNPACK_BLOCK_BYTES = 1 << 19
 """values unpacked per step: the step's intermediates stay in the CPU's cache (a whole 50,000-record
 log at once went through memory several times: 3x2 records took 60% longer)"""
+
+
+def _pairs(buf: np.ndarray, width: int) -> np.ndarray:
+    """Every `width` consecutive little-endian byte pairs of `buf` (pair j of row p: bytes p + j and
+    p + j + 1), one row per start: an unaligned read-only view, no copy."""
+    return np.ndarray((max(len(buf) - width, 0), width), "<u2", buf, 0, (1, 1))
 
 
 def _unpack(
@@ -275,24 +275,22 @@ def _unpack(
     whose payloads start at `payload_at` into out[rows] (out[:n] when `rows` is None).
 
     Each value is the byte at its bit offset shifted right by the offset's remainder, with the
-    next byte's low bits above it, cut to int8 (what read_bfee.c does per value); the shifts are
-    uint8 arithmetic, which drops the bits above the eighth. Only the final store is float64.
+    next byte's low bits above it, cut to int8 (what read_bfee.c does per value): the two bytes
+    are read as one little-endian pair, shifted, and its low byte kept. Only the final store is
+    float64.
     """
     layout = _byte_layout(nrx, ntx, sources)
-    windows = _windows(buf, layout.span)
+    pairs = _pairs(buf, layout.span - 1)
     n, width = len(payload_at), len(layout.byte)
     block = max(1, min(n, UNPACK_BLOCK_BYTES // width))
-    low, high = np.empty((block, width), np.uint8), np.empty((block, width), np.uint8)
+    values = np.empty((block, width), "<u2")
     for i in range(0, n, block):
-        payloads = windows[payload_at[i : i + block]]
-        lo, hi = low[: len(payloads)], high[: len(payloads)]
-        np.take(payloads, layout.byte, axis=1, out=lo)
-        np.take(payloads, layout.following, axis=1, out=hi)
-        np.right_shift(lo, layout.down, out=lo)
-        np.left_shift(hi, layout.up, out=hi)
-        np.bitwise_or(lo, hi, out=lo)
+        payloads = pairs[payload_at[i : i + block]]
+        v = values[: len(payloads)]
+        np.take(payloads, layout.byte, axis=1, out=v)
+        np.right_shift(v, layout.down, out=v)
         target = slice(i, i + len(payloads)) if rows is None else rows[i : i + len(payloads)]
-        out[target] = lo.view(np.int8)
+        out[target] = v.view(np.uint8)[:, 0::2].view(np.int8)
 
 
 def _scale_factors(
