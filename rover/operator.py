@@ -22,12 +22,15 @@ from rover.messages import ANY, known_type
 
 @dataclass(frozen=True)
 class In:
-    """An input port: its message type, whether it must be wired, and whether it gets raw CDR bytes."""
+    """An input port: its message type, whether it must be wired, whether it gets raw CDR bytes, and
+    whether it gets a mutable message of its own (`writable`) instead of the read-only one the
+    process's other consumers of the stream share (rover.frozen)."""
 
     type: str
     required: bool = True
     raw: bool = False
     doc: str = ""
+    writable: bool = False
 
 
 @dataclass(frozen=True)
@@ -63,6 +66,9 @@ class Ports:
                     found.append(f"{kind} {name!r}: unknown message type {port.type!r}")
                 elif kind == "output" and port.type == ANY:
                     found.append(f"output {name!r} needs a concrete type")
+        for name, port in [*self.inputs.items(), *([("*", self.variadic)] if self.variadic else [])]:
+            if port.raw and port.writable:
+                found.append(f"input {name!r}: a raw port gets bytes, not a message: raw excludes writable")
         if self.variadic is not None and not known_type(self.variadic.type):
             found.append(f"inputs of any name: unknown message type {self.variadic.type!r}")
         return found

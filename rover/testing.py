@@ -2,7 +2,10 @@
 
 The messages go through the runtime's own event-time merger (rover.runtime.scheduler), each
 stamped with its header as a publisher stamps it: the operator sees them in (stamp, port name)
-order, each port's messages in the order given, and then the end of every input.
+order, each port's messages in the order given, and then the end of every input. Like the runtime,
+it hands the operator read-only copies (rover.frozen), or mutable ones on a `writable` port: an
+operator that edits its input fails here as it would in a pipeline, and the caller's messages
+are never changed.
 """
 
 from __future__ import annotations
@@ -10,8 +13,9 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from rover.messages import stamp_ns
-from rover.operator import Emit, Operator
+from rover.frozen import freeze, thaw
+from rover.messages import Raw, stamp_ns
+from rover.operator import Emit, In, Operator
 from rover.runtime.scheduler import EventTimeMerger
 
 
@@ -25,11 +29,20 @@ def run_operator(op: Operator, inputs: Mapping[str, Sequence[Any]]) -> list[Emit
             raise ValueError(f"{type(op).__name__} has no input {port!r}")
     merger = EventTimeMerger(list(inputs))
     for port, messages in inputs.items():
+        spec = ports.input_spec(port)
+        assert spec is not None
         for msg in messages:
-            merger.push(port, stamp_ns(msg), msg)
+            merger.push(port, stamp_ns(msg), _as_delivered(msg, spec))
         merger.end(port)
     out: list[Emit] = []
     for port, stamp, msg in merger.pop_ready():
         out.extend(op.on_input(port, msg, stamp) or ())
     out.extend(op.on_end() or ())
     return out
+
+
+def _as_delivered(msg: Any, spec: In) -> Any:
+    """What the runtime would hand the port: bytes as they are, else a copy, read-only unless writable."""
+    if isinstance(msg, Raw):
+        return msg
+    return thaw(msg) if spec.writable else freeze(thaw(msg))

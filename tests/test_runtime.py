@@ -301,9 +301,10 @@ operators:
 
 
 def test_an_operator_editing_its_input_changes_no_other_operators_input(tmp_path):
-    """`scale` multiplies each message it receives in place (the README's example) while `same`
-    forwards the very same messages untouched, in one process: what `same` sent is the dataset's
-    bytes, what `scale` sent is scaled. However messages are handed out, no edit leaks."""
+    """`scale` multiplies each message it receives in place (the README's example, a writable port)
+    while `same` forwards the very same messages untouched, in one process: what `same` sent is the
+    dataset's bytes, what `scale` sent is scaled. Messages are decoded once per process, yet no edit
+    leaks."""
     dataset = write_imu_dataset(tmp_path / "imu.mcap", 200)
     pipeline = tmp_path / "edit.yaml"
     pipeline.write_text(f"""\
@@ -323,6 +324,26 @@ operators:
     assert len(original) == 200 and same == original
     z = [deserialize(data, "sensor_msgs/msg/Imu").angular_velocity.z for data in original]
     assert [m.angular_velocity.z for m in scaled] == [2.0 * v for v in z]
+
+
+def test_an_operator_editing_a_shared_input_fails_in_one_line_naming_the_field(tmp_path):
+    """Without `writable`, the edit meets the message the process shares: the run fails, saying
+    which operator, which field and what to do, and `same`'s input was never touched."""
+    dataset = write_imu_dataset(tmp_path / "imu.mcap", 20)
+    pipeline = tmp_path / "edit.yaml"
+    pipeline.write_text(f"""\
+name: edit
+operators:
+  replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}
+  scale:  {{uses: toyops.ScaleShared, inputs: {{imu: replay/imu}}, params: {{gain: 2.0}}}}
+  same:   {{uses: toyops.Passthrough, inputs: {{imu: replay/imu}}}}
+""")
+    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
+    assert proc.returncode == 1, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if "error" in line]
+    assert len(errors) == 1, proc.stderr
+    assert "operator 'scale'" in errors[0] and "geometry_msgs/msg/Vector3.z" in errors[0], errors
+    assert "writable=True" in errors[0] and "Traceback" not in proc.stderr
 
 
 def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_path):

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rover.errors import OutputFailed
+from rover.frozen import thaw
 from rover.geometry import quaternion_from_yaw
 from rover.messages import ANY, header, make
 from rover.operator import COMPLETE, Emit, In, Operator, Out, Ports, RunOutcome, Source, Watermark
@@ -40,7 +41,7 @@ class Heading(Operator):
                 self.yaw += self.params.gain * msg.angular_velocity.z * (stamp_ns - self.last_ns) * 1e-9
             self.last_ns = stamp_ns
             return
-        pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp_ns, "world"), pose=msg.pose.pose)
+        pose = make("geometry_msgs/msg/PoseStamped", header=header(stamp_ns, "world"), pose=thaw(msg.pose.pose))
         _, _, qz, qw = quaternion_from_yaw(self.yaw)
         pose.pose.orientation.z, pose.pose.orientation.w = float(qz), float(qw)
         yield Emit("pose", pose)
@@ -60,15 +61,21 @@ class ScaleParams:
 
 
 class Scale(Operator):
-    """The README's example: edits its input message in place and sends it on."""
+    """The README's example: edits its input message in place (a writable port) and sends it on."""
 
-    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    inputs = {"imu": In("sensor_msgs/msg/Imu", writable=True)}
     outputs = {"imu": Out("sensor_msgs/msg/Imu")}
     Params = ScaleParams
 
     def on_input(self, port, msg, stamp_ns):
         msg.angular_velocity.z *= self.params.gain
         yield Emit("imu", msg)
+
+
+class ScaleShared(Scale):
+    """The same edit on a port not declared writable: its input is the shared, read-only message."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
 
 
 class _Counting(Operator):

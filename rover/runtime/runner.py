@@ -1,7 +1,8 @@
 """Running a checked pipeline: operators on real Zenoh sessions, in event-time order.
 
 One process runs every operator (or, with a host name, that host's share) on one Zenoh
-session. Each operator has a thread and an inbox; subscribers only enqueue. Sources start
+session. Each operator has a thread and an inbox; the process's subscribers, one per key, only
+enqueue, and the message is decoded once for all its consumers (rover/runtime/delivery.py). Sources start
 once every host has declared its subscribers, so nothing is published into the void, and a
 host leaves only when every host is done, so nothing in flight is cut off.
 """
@@ -25,10 +26,11 @@ from typing import Any
 import zenoh
 
 from rover.errors import BadInput, OperatorFailed, OutputFailed, PeerLost, RoverError, SpecError, TransportError
-from rover.messages import Raw, cdr_stamp_ns, deserialize, has_header, serialize, stamp_ns, typestore
+from rover.messages import Raw, cdr_stamp_ns, has_header, serialize, stamp_ns, typestore
 from rover.operator import Emit, Operator, OperatorCounts, OperatorProfile, RunOutcome, Source, Watermark
 from rover.pipeline.validation import Node, Pipeline, host_links
 from rover.runtime.credit import Acks, Credits
+from rover.runtime.delivery import Delivery, Fanout
 from rover.runtime.hosts import HostWatch, attribute_to_hubs, describe_loss
 from rover.runtime.inbox import Inbox, Policy
 from rover.runtime.scheduler import INF, EventTimeMerger
@@ -334,29 +336,25 @@ class OperatorTask(Task):
         """acknowledgements of what was taken on inputs fed from other hosts (flow control)"""
         self.local_threads: frozenset[threading.Thread] = frozenset()
         """the threads of this process's tasks: their puts may wait on a full inbox for as long as it takes"""
-        self.inbox: Inbox[tuple[str, bytes, bytes | None]] = Inbox(node.spec.inbox)
+        self.inbox: Inbox[Delivery] = Inbox(node.spec.inbox)
         self.merger = EventTimeMerger(list(node.spec.inputs))
         self.ports = {port: spec for port in node.spec.inputs if (spec := node.ports.input_spec(port)) is not None}
-        self.subscribers = [
-            session.declare_subscriber(
-                keys.port_key(pipeline, wire.source, wire.source_port),
-                zenoh.handlers.Callback(self._enqueue_for(port), indirect=False),
-            )
-            for port, wire in node.spec.inputs.items()
-        ]
 
-    def _enqueue_for(self, port: str) -> Callable[[zenoh.Sample], None]:
+    def subscribe(self, fanout: Fanout, pipeline: str) -> None:
+        """Have the process's subscribers hand this task every sample of each of its inputs."""
+        for port, wire in self.node.spec.inputs.items():
+            fanout.add(keys.port_key(pipeline, wire.source, wire.source_port), self._enqueue_for(port))
+
+    def _enqueue_for(self, port: str) -> Callable[[Delivery], None]:
         inbox, policy = self.inbox, self.policies[port]
 
-        def enqueue(sample: zenoh.Sample) -> None:
+        def enqueue(delivery: Delivery) -> None:
             """Runs in the producer's thread (in one process), where a full inbox makes it wait; or in
             Zenoh's receive thread (from another host), which never waits: the producer there waits
             for credit instead (`rover/runtime/credit.py`), so the inbox does not overflow."""
-            att = sample.attachment
-            raw = att.to_bytes() if att else None
-            item = (str(sample.encoding), sample.payload.to_bytes(), raw)
             local = threading.current_thread() in self.local_threads
-            inbox.put(port, item, control=codec.is_control(raw), policy=policy, max_wait_s=None if local else 0.0)
+            control = codec.is_control(delivery.attachment)
+            inbox.put(port, delivery, control=control, policy=policy, max_wait_s=None if local else 0.0)
 
         return enqueue
 
@@ -370,9 +368,6 @@ class OperatorTask(Task):
         self.inbox.close()
 
     def undeclare(self) -> None:
-        for subscriber in self.subscribers:
-            with contextlib.suppress(zenoh.ZError):
-                subscriber.undeclare()
         if self.acks is not None:
             with contextlib.suppress(zenoh.ZError):
                 self.acks.close()
@@ -385,11 +380,11 @@ class OperatorTask(Task):
 
     def cut(self, port: str) -> None:
         """End an input's stream here: its producer's host was lost (what is queued is still handled)."""
-        self.inbox.put(port, ("", b"", codec.attachment(codec.Kind.CUT, 0, 0)), control=True)
+        self.inbox.put(port, Delivery("", b"", codec.attachment(codec.Kind.CUT, 0, 0)), control=True)
 
-    def _accept(self, port: str, encoding: str, payload: bytes, att: bytes | None) -> None:
+    def _accept(self, port: str, delivery: Delivery) -> None:
         try:
-            kind, stamp, mark = codec.read_attachment(att)
+            kind, stamp, mark = codec.read_attachment(delivery.attachment)
         except codec.CodecError as exc:
             self._drop(port, str(exc))
             return
@@ -405,18 +400,18 @@ class OperatorTask(Task):
         if kind == codec.Kind.WATERMARK:
             return
         spec = self.ports[port]
-        typename = codec.schema_of(encoding)
+        typename = codec.schema_of(delivery.encoding)
         if typename != self.wire_types[port]:
             self._drop(port, f"type {typename or 'unknown'} where {self.wire_types[port]} was expected")
             return
         start = time.perf_counter_ns()
         if spec.raw:
+            payload = delivery.payload
             msg = Raw(typename, payload) if _plausible_cdr(payload, typename, stamp) else None
+        elif spec.writable:
+            msg = delivery.private_message(typename)
         else:
-            try:
-                msg = deserialize(payload, typename)
-            except Exception:  # noqa: BLE001 - any decoding failure of foreign bytes is a drop, never a crash
-                msg = None
+            msg = delivery.message(typename)
         self.clock.decode += time.perf_counter_ns() - start
         if msg is None:
             self._drop(port, f"bytes that do not decode as {typename or spec.type}")
@@ -433,14 +428,14 @@ class OperatorTask(Task):
                 return
             waiting = time.perf_counter_ns()
             try:
-                port, (encoding, payload, att) = self.inbox.get(timeout=POLL_S)
+                port, delivery = self.inbox.get(timeout=POLL_S)
             except queue.Empty:
                 continue
             finally:
                 self.clock.idle += time.perf_counter_ns() - waiting
-            if self.acks is not None and not codec.is_control(att):
+            if self.acks is not None and not codec.is_control(delivery.attachment):
                 self.acks.took(port)
-            self._accept(port, encoding, payload, att)
+            self._accept(port, delivery)
             for port, stamp, msg in merger.pop_ready():
                 if self.abort.is_set():
                     return
@@ -701,6 +696,7 @@ class Runner:
     def _run(self, session: zenoh.Session, ops: dict[str, Operator]) -> None:
         name = self.pipeline.name
         args = (name, session, self.stop, self.abort)
+        fanout = Fanout(session)
         try:
             # one at a time: what was built is undeclared and released in `finally` if a later one fails
             for n in self.nodes:
@@ -713,6 +709,8 @@ class Runner:
             for task in self.tasks:
                 if isinstance(task, OperatorTask):
                     task.local_threads = threads
+                    task.subscribe(fanout, name)
+            fanout.declare()
             if self.distributed:
                 self._flow_control(session)
                 self._run_with_hosts(session)
@@ -726,6 +724,7 @@ class Runner:
             for task in self.tasks:
                 if task.thread.ident is not None:
                     task.thread.join(timeout=max(0.0, joined_by - time.monotonic()))
+            fanout.undeclare()
             for task in self.tasks:
                 if not task.thread.is_alive():
                     task.undeclare()
