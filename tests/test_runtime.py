@@ -300,22 +300,28 @@ operators:
         assert all(v >= 0 for v in parts.values()), (name, parts)
 
 
+def edit_pipeline(tmp_path: Path, dataset: Path, scale: str, *more: str) -> Path:
+    """A pipeline in which `scale` (an operator editing its input) and `same` (a passthrough) take
+    the same replayed IMU messages in one process, with `more` operators' lines after them."""
+    pipeline = tmp_path / "edit.yaml"
+    lines = [
+        f'replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}',
+        f"scale: {{uses: {scale}, inputs: {{imu: replay/imu}}, params: {{gain: 2.0}}}}",
+        "same: {uses: toyops.Passthrough, inputs: {imu: replay/imu}}",
+        *more,
+    ]
+    pipeline.write_text("name: edit\noperators:\n" + "".join(f"  {line}\n" for line in lines))
+    return pipeline
+
+
 def test_an_operator_editing_its_input_changes_no_other_operators_input(tmp_path):
     """`scale` multiplies each message it receives in place (the README's example, a writable port)
     while `same` forwards the very same messages untouched, in one process: what `same` sent is the
     dataset's bytes, what `scale` sent is scaled. Messages are decoded once per process, yet no edit
     leaks."""
     dataset = write_imu_dataset(tmp_path / "imu.mcap", 200)
-    pipeline = tmp_path / "edit.yaml"
-    pipeline.write_text(f"""\
-name: edit
-operators:
-  replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}
-  scale:  {{uses: toyops.Scale, inputs: {{imu: replay/imu}}, params: {{gain: 2.0}}}}
-  same:   {{uses: toyops.Passthrough, inputs: {{imu: replay/imu}}}}
-  record: {{uses: recorder, inputs: {{scaled: scale/imu, same: same/imu}}, params: {{out: out}}}}
-""")
-    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
+    record = "record: {uses: recorder, inputs: {scaled: scale/imu, same: same/imu}, params: {out: out}}"
+    proc = run_rover("run", str(edit_pipeline(tmp_path, dataset, "toyops.Scale", record)), cwd=tmp_path, timeout=60)
     assert proc.returncode == 0, proc.stderr
     original = [data for topic, _t, data in read_bag(dataset) if topic == "/imu/data"]
     recorded = read_bag(tmp_path / "out" / "results.mcap")
@@ -330,15 +336,7 @@ def test_an_operator_editing_a_shared_input_fails_in_one_line_naming_the_field(t
     """Without `writable`, the edit meets the message the process shares: the run fails, saying
     which operator, which field and what to do, and `same`'s input was never touched."""
     dataset = write_imu_dataset(tmp_path / "imu.mcap", 20)
-    pipeline = tmp_path / "edit.yaml"
-    pipeline.write_text(f"""\
-name: edit
-operators:
-  replay: {{uses: dataset_replay, params: {{path: "{dataset}"}}}}
-  scale:  {{uses: toyops.ScaleShared, inputs: {{imu: replay/imu}}, params: {{gain: 2.0}}}}
-  same:   {{uses: toyops.Passthrough, inputs: {{imu: replay/imu}}}}
-""")
-    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
+    proc = run_rover("run", str(edit_pipeline(tmp_path, dataset, "toyops.ScaleShared")), cwd=tmp_path, timeout=60)
     assert proc.returncode == 1, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if "error" in line]
     assert len(errors) == 1, proc.stderr
