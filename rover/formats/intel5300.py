@@ -63,6 +63,12 @@ RSS_OFFSET_DB = 44
 """get_total_rss: RSS (dBm) = power sum of the chains' RSSI (dB) - 44 - AGC (dB)."""
 NTX_AMPLITUDE_CORRECTION = np.array([1.0, 1.0, np.sqrt(2.0), np.sqrt(10 ** (4.5 / 10))])
 """get_scaled_csi's correction by Ntx (index): 3 dB in power for two streams, 4.5 dB for three."""
+_DB = np.arange(256)
+_RSSI_MW = np.where(_DB != 0, 10 ** (_DB / 10), 0.0)
+"""a chain's RSSI byte (dB) as power, 0 for a chain without one: get_total_rss's terms, looked up"""
+_NOISE_DB = _DB.astype(np.uint8).view(np.int8).astype(np.float64)
+_NOISE_MW = 10 ** (np.where(_NOISE_DB == NOISE_UNKNOWN_DB, NOISE_FLOOR_DB, _NOISE_DB) / 10)
+"""the noise byte (int8 dBm, read as uint8) as thermal noise power, the unknown value at the floor"""
 _PERM_SUM_BY_NRX = np.array([0, 1, 3, 6])
 """What read_bf_file expects the three perm entries to sum to for 1, 2, 3 receive chains."""
 
@@ -86,6 +92,8 @@ _HEADER = np.dtype(
 assert _HEADER.itemsize == HEADER_BYTES and _HEADER.fields is not None
 _NRX_AT, _NTX_AT, _LEN_AT = (1 + _HEADER.fields[name][1] for name in ("nrx", "ntx", "len"))
 """Offsets of header fields from a record's code byte."""
+_RSSI_AT = _HEADER.fields["rssi_a"][1]
+"""Offset of rssi_a (rssi_b and rssi_c follow it) in the header."""
 
 
 class CsiFormatError(ValueError):
@@ -303,13 +311,11 @@ def _scale_factors(
     (10^(noise/10), noise -127 read as -92) plus quantization error (that scale x Nrx x Ntx).
     Records with zero RSSI or zero CSI give 0 or NaN, as in MATLAB.
     """
-    rssi = rssi.astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rssi_mw = np.where(rssi != 0, 10 ** (rssi / 10), 0.0).sum(axis=1)
+        rssi_mw = _RSSI_MW[rssi].sum(axis=1)
         rss_dbm = 10 * np.log10(rssi_mw) - RSS_OFFSET_DB - agc.astype(np.float64)
         scale = 10 ** (rss_dbm / 10) / (power / SUBCARRIERS)
-        noise_dbm = np.where(noise == NOISE_UNKNOWN_DB, NOISE_FLOOR_DB, noise).astype(np.float64)
-        total_noise = 10 ** (noise_dbm / 10) + scale * (nrx.astype(np.float64) * ntx)
+        total_noise = _NOISE_MW[noise.view(np.uint8)] + scale * (nrx.astype(np.float64) * ntx)
         amplitude: np.ndarray = np.sqrt(scale / total_noise) * NTX_AMPLITUDE_CORRECTION[ntx]
         return amplitude
 
@@ -346,14 +352,15 @@ def _decode(buf: np.ndarray, code_at: np.ndarray, scaled: bool) -> CsiRecords:
     n = len(code_at)
     if n == 0:
         return _empty_records(scaled)
-    head = _windows(buf, HEADER_BYTES)[code_at + 1].view(_HEADER).reshape(n)
+    head_bytes = _windows(buf, HEADER_BYTES)[code_at + 1]
+    head = head_bytes.view(_HEADER).reshape(n)
     nrx, ntx = head["nrx"], head["ntx"]
     perm_table, source_table = _layout_tables()
     perm = perm_table[head["antenna_sel"]]
     # records of one (antenna_sel, Nrx, Ntx) share their layout: a small integer per record
     layout = (head["antenna_sel"].astype(np.int64) * 4 + nrx) * 4 + ntx
-    kinds = np.flatnonzero(np.bincount(layout, minlength=256 * 16))
-    rssi = np.stack([head["rssi_a"], head["rssi_b"], head["rssi_c"]], axis=1)
+    kinds = layout[:1] if np.all(layout == layout[0]) else np.flatnonzero(np.bincount(layout, minlength=256 * 16))
+    rssi = head_bytes[:, _RSSI_AT : _RSSI_AT + 3].copy()  # rssi_a, rssi_b, rssi_c
     shape = (int(nrx.max()), int(ntx.max()))
     csi = np.zeros((n, SUBCARRIERS, *shape), dtype=np.complex128)
     flat = csi.reshape(n, -1).view(np.float64)
