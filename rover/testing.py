@@ -24,13 +24,14 @@ def run_operator(op: Operator, inputs: Mapping[str, Sequence[Any]]) -> list[Emit
     return what it emitted, in order and as it emitted it. Only the ports given are wired, as in a
     pipeline that leaves the others unconnected; the operator's drops stay in `op.drops`."""
     ports = type(op).declared_ports(getattr(op, "params", None))
+    specs: dict[str, In] = {}
     for port in inputs:
-        if ports.input_spec(port) is None:
+        if (spec := ports.input_spec(port)) is None:
             raise ValueError(f"{type(op).__name__} has no input {port!r}")
+        specs[port] = spec
     merger = EventTimeMerger(list(inputs))
     for port, messages in inputs.items():
-        spec = ports.input_spec(port)
-        assert spec is not None
+        spec = specs[port]
         for msg in messages:
             merger.push(port, stamp_ns(msg), _as_delivered(msg, spec))
         merger.end(port)

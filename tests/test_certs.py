@@ -315,7 +315,7 @@ def test_an_encrypted_key_is_refused_with_its_file_named(tmp_path):
 OPENSSL = shutil.which("openssl")
 
 
-@pytest.mark.skipif(OPENSSL is None, reason="the openssl binary is not installed: no independent verifier")
+@pytest.mark.skipif(OPENSSL is None, reason="no openssl binary (Debian package openssl): no independent verifier")
 def test_openssl_verifies_the_chain_names_and_purposes(tmp_path):
     """An independent verifier agrees: each certificate chains to ca.pem (not to another set's CA),
     nuc's covers its IP and DNS name, and the monitor is a client but not a server."""
