@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export ROVER_TEST_DATA ?= $(abspath ../shared/data)
 
-.PHONY: demo test lint bench check clean netns-tools
+.PHONY: demo test test-fast lint bench check clean netns-tools
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,10 @@ netns-tools:
 
 test: lint netns-tools
 	$(BIN)/python -m pytest -q --durations=15
+
+# The unit and contract tests only, on both cores: what to run while iterating (docs/contributing.md).
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 -m "not slow and not netns"
 
 $(VENV)/.bench: pyproject.toml $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[test,bench]"

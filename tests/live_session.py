@@ -21,9 +21,10 @@ from pathlib import Path
 
 import yaml
 from create2_device import Create2Device
+from helpers import wait_until
 from live_feed import CsiLogFeeder, Recorded, tune_command
 from mip_device import MipDevice
-from netns import ADDRESSES, Lab, wait_until
+from netns import ADDRESSES, POLL_S, Lab
 
 ROOT = Path(__file__).resolve().parent.parent
 IMU_DECIMATION = 5
@@ -103,11 +104,17 @@ def run_session(
         }
         procs = list(hosts.values())
         streaming = lambda: bool(nic.records and imu.sent and base.sent)  # noqa: E731
-        wait_until(streaming, procs, "every sensor streams", timeout_s=START_TIMEOUT_S)
+        wait_until(streaming, "every sensor streams", procs=procs, timeout_s=START_TIMEOUT_S, poll_s=POLL_S)
         if during is not None:
             during(lab, pipeline)
         started = time.monotonic()
-        wait_until(lambda: time.monotonic() - started >= seconds, procs, f"{seconds:g} s of live data", seconds + 30)
+        wait_until(
+            lambda: time.monotonic() - started >= seconds,
+            f"{seconds:g} s of live data",
+            procs=procs,
+            timeout_s=seconds + 30,
+            poll_s=POLL_S,
+        )
         for host in ("nuc", "base"):  # the sources' hosts: Ctrl-C on each, as the operator of the robot does
             hosts[host].send_signal(signal.SIGINT)
         ended = {host: _finish(proc) for host, proc in hosts.items()}

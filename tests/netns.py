@@ -29,10 +29,11 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import pytest
+from helpers import wait_until
 
 from rover.security.certs import issue
 
@@ -202,7 +203,10 @@ class Lab:
         return ["ip", "netns", "exec", self.ns[host], *argv]
 
     def spawn(self, host: str, *argv: str, **kwargs) -> subprocess.Popen:
-        """Start `argv` inside `host`'s namespace; killed when the lab closes."""
+        """Start `argv` inside `host`'s namespace; killed when the lab closes. Its standard streams
+        are the null device unless given: it never holds the test runner's output open."""
+        for stream in ("stdin", "stdout", "stderr"):
+            kwargs.setdefault(stream, subprocess.DEVNULL)
         proc = subprocess.Popen(self.exec_argv(host, *argv), **kwargs)
         self.procs.append(proc)
         return proc
@@ -298,7 +302,13 @@ class Lab:
         """Wait until `host` received `min_bytes` on the wire: how far a run is, to act mid-run
         (the recorder's partial file grows only per 1 MiB chunk, too coarse for that). Fails if any
         of `procs` ends first."""
-        wait_until(lambda: self.rx_bytes(host) >= min_bytes, procs, f"{host} received {min_bytes} bytes", timeout_s)
+        wait_until(
+            lambda: self.rx_bytes(host) >= min_bytes,
+            f"{host} received {min_bytes} bytes",
+            procs=procs,
+            timeout_s=timeout_s,
+            poll_s=POLL_S,
+        )
 
     def relay(self, host: str, listen_port: int, target: str, delay_s: float) -> subprocess.Popen:
         """Start tests/relay.py in `host`'s namespace: it accepts TCP on the host's address at
@@ -328,21 +338,6 @@ class Lab:
                 seen += chunk
         assert seen.startswith(b"listening "), f"relay on {listen}: {seen!r}"
         return proc
-
-
-def wait_until(
-    condition: Callable[[], bool], procs: Sequence[subprocess.Popen], what: str, timeout_s: float = 120
-) -> None:
-    """Poll `condition` until it holds, to act mid-run; fail if any of `procs` ends first or after `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        for proc in procs:
-            if proc.poll() is not None:
-                _out, err = proc.communicate()
-                command = " ".join(map(str, proc.args)) if isinstance(proc.args, list) else str(proc.args)
-                raise AssertionError(f"{command} ended ({proc.returncode}) before {what}:\n{err}")
-        assert time.monotonic() < deadline, f"not {what} after {timeout_s:g} s"
-        time.sleep(POLL_S)
 
 
 def lab_certs(folder: Path) -> Path:

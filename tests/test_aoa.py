@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import read_bag, reference_data
+from helpers import read_bag, reference_data
 
 from rover.errors import BadInput
 from rover.formats.intel5300 import decode_bfee
@@ -179,6 +179,7 @@ def errors_against(out: list, truth: dict[int, float]) -> tuple[np.ndarray, np.n
     return errors, np.radians(errors) / np.array([aoa.std_rad for aoa in out])
 
 
+@pytest.mark.slow
 def test_the_independent_recording_within_10_degrees_with_an_honest_std():
     data = reference_data() / "recording_sample"
     rig = load_rig(data / "setup.yaml")
@@ -217,6 +218,7 @@ def paper_bursts(simulated, *overrides: str):
     return out, truth, np.array([aoa.tag_id in nlos_tags for aoa in out])
 
 
+@pytest.mark.slow
 def test_the_simulated_paper_room(simulated):
     """LOS and NLOS accuracy with margin over the benchmark's figures, and the std's spread: for a
     Gaussian the median of |error| / std is 0.67 and 99.7% are below 3; multipath makes a tail.
@@ -227,6 +229,7 @@ def test_the_simulated_paper_room(simulated):
     assert 0.4 <= np.median(z) <= 1.0 and np.mean(z < 3) >= 0.9, (np.median(z), np.mean(z < 3))
 
 
+@pytest.mark.slow
 def test_phase_jumps_leave_the_true_angle_among_the_candidates(simulated):
     """With every channel's chains off their calibration by random multiples of pi, the no-jump
     angle is mostly wrong, but the candidates hold the estimate the unjumped card would have given

@@ -8,7 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from conftest import TESTS, free_port, popen_rover, read_bag, run_rover, write_imu_dataset
+import pytest
+from helpers import TESTS, free_port, popen_rover, read_bag, run_rover, write_imu_dataset
 
 from rover.runtime.status import HostStatus
 from rover.transport.monitor import StatusClient
@@ -92,6 +93,7 @@ MEMORY_GROWTH_MB = 16.0
 extra messages would queue in the sink's inbox (about 0.5 kB each: some 45 MB)."""
 
 
+@pytest.mark.slow
 def test_memory_of_a_replay_into_a_slow_sink_stays_flat(tmp_path):
     peaks = []
     for n in (5_000, 100_000):
@@ -147,6 +149,7 @@ operators:
     assert handled < 500 and handled + dropped == 1000, line
 
 
+@pytest.mark.slow
 def test_a_consumer_on_another_host_stalled_past_host_timeout_loses_no_host(tmp_path):
     """A consumer on the laptop stalls for twice host_timeout_s while the robot replays: the replay
     waits for credit in its own thread (Zenoh's receive thread never waits, so the link's

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import T0_NS
+from helpers import T0_NS
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import reference_data
+from helpers import reference_data
 
 from rover.cli.commands import main
 from rover.formats.intel5300 import read_dat
@@ -51,6 +51,7 @@ def test_bursts_of_a_capture_hold_every_jump_combination():
     assert all(abs(math.degrees(a)) <= 90.0 + 1e-9 for b in bursts for a in b.candidate_angles_rad)  # in front
 
 
+@pytest.mark.slow
 def test_rover_aoa_runs_on_every_lgtm_capture(tmp_path):
     setup = tmp_path / "rig.yaml"
     setup.write_text(LGTM_RIG)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import T0_NS, reference_data
+from helpers import T0_NS, reference_data
 from hypothesis import given
 from hypothesis import strategies as st
 from test_cli_contract import FUZZ, _mutated, assert_contract, run_cli, text_or_bytes
@@ -214,6 +214,7 @@ def test_lgtm_offsets_follow_the_antennas_through_a_permutation_change():
 # --- a simulated dataset -------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_simulated_dataset_gives_the_true_offsets_per_channel(simulated):
     """Without wall reflections the only errors are noise and quantization: each tag channel's
     calibration equals the scenario's true offsets modulo pi (the simulator shifts chains by pi

@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 
 import pytest
-from conftest import read_bag, run_rover
+from helpers import read_bag, run_rover
 
 from rover.drivers.channel_hop import ChannelHop, HopParams
 from rover.errors import BadInput

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import T0_NS
+from helpers import T0_NS
 
 from rover.errors import BadInput
 from rover.messages import header, make

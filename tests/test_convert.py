@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import T0_NS, popen_rover, read_bag, reference_data, run_rover, stop_while_writing
+from helpers import T0_NS, popen_rover, read_bag, reference_data, run_rover, stop_while_writing
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 

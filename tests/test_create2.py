@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import read_bag, run_rover
 from create2_device import Create2Device, SentFrame, constant, standing
+from helpers import read_bag, run_rover
 from scripted_port import ScriptedPort
 
 from rover.drivers.create2 import (

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from conftest import T0_NS, reference_data
+from helpers import T0_NS, reference_data
 
 from rover.formats.intel5300 import read_dat, split_records
 from rover.messages import deserialize, header, make, serialize

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import T0_NS, read_bag, reference_data, run_rover
+from helpers import T0_NS, read_bag, reference_data, run_rover
 
 from rover.drivers import csi_file
 from rover.drivers.csi_file import CsiFile, CsiFileParams

@@ -7,7 +7,7 @@ import struct
 import threading
 
 import pytest
-from conftest import reference_data
+from helpers import reference_data
 
 from rover.drivers.csi_netlink import (
     CN_IDX_IWLAGN,

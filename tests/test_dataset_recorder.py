@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from conftest import ROOT, T0_NS, run_rover
+from helpers import ROOT, T0_NS, run_rover
 from mcap.reader import make_reader
 
 from rover.drivers.dataset_recorder import DatasetRecorder, DatasetRecorderParams

@@ -14,13 +14,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import popen_rover, read_bag, reference_data, run_rover, strip_truth, wait_for_file
+from helpers import popen_rover, read_bag, reference_data, run_rover, strip_truth, wait_for_file
 
 from rover.cli.demo import simulator_version
 from rover.drivers.run_outputs import TAG_COLUMNS
 from rover.formats.bag import BagWriter, read_metadata
 from rover.geometry import wrap_angle
 from rover.messages import deserialize
+
+pytestmark = pytest.mark.slow  # every test here runs the whole pipeline
 
 
 def test_the_demo_beats_the_papers_figures(tmp_path, simulated):

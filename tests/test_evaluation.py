@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_rover
+from helpers import run_rover
 
 from rover.cli.commands import main
 from rover.evaluation.metrics import Poses2D, Rigid2D, RunRecord, Truth, fit_rigid, published_honesty, trajectory_errors

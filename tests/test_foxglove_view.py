@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import ROOT, T0_NS, popen_rover
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # type: ignore[import-untyped]
+from helpers import ROOT, T0_NS, popen_rover, wait_until
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
@@ -105,13 +105,6 @@ def decode(channel: dict[str, Any], payload: bytes) -> Any:
     return cls.FromString(payload)
 
 
-def wait_until(condition, what: str) -> None:
-    deadline = time.monotonic() + TIMEOUT_S
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.001)
-
-
 @pytest.fixture
 def served():
     """A started view on a free port and a client subscribed to all its channels."""
@@ -121,7 +114,12 @@ def served():
         client.advertised(5)
         client.subscribe_all()
         channels = (view.tf, view.path, view.tags, view.aoa, view.diagnostics)
-        wait_until(lambda: all(c.has_sinks() for c in channels), "the subscriptions to reach the server")
+        wait_until(
+            lambda: all(c.has_sinks() for c in channels),
+            "the subscriptions to reach the server",
+            timeout_s=TIMEOUT_S,
+            poll_s=0.001,
+        )
         yield view, client
     view.close()
 
@@ -253,7 +251,7 @@ def test_a_port_in_use_is_one_line_and_close_frees_it():
     view = FoxgloveView(FoxgloveViewParams(port=port))
     view.start()
     view.close()
-    wait_until(lambda: free(port), f"port {port} to be free")
+    wait_until(lambda: free(port), f"port {port} to be free", timeout_s=TIMEOUT_S, poll_s=0.001)
 
 
 def free(port: int) -> bool:

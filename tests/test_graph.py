@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from conftest import ROOT, run_rover
+from helpers import ROOT, run_rover
 
 
 def test_mermaid_of_the_default_pipeline():

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import pytest
 import zenoh
-from conftest import free_port
+from helpers import free_port, wait_until
 
 from rover.errors import TransportError
 from rover.operator import LostHost
@@ -24,14 +23,6 @@ WAIT_S = 10.0
 
 
 TIMEOUTS = {"nuc": 15.0, "base": 15.0, "laptop": 15.0}
-
-
-def until(condition: Callable[[], bool], what: str) -> None:
-    """Poll a condition that Zenoh's thread makes true, for at most WAIT_S."""
-    deadline = time.monotonic() + WAIT_S
-    while not condition():
-        assert time.monotonic() < deadline, f"not {what} after {WAIT_S:g} s"
-        time.sleep(0.01)
 
 
 def lost(*names: str, reason: str = "gone") -> dict[str, LostHost]:
@@ -100,7 +91,7 @@ def test_a_host_withdrawn_before_done_is_lost_with_its_reason(sessions):
     base = token(theirs, "base", "ready")
     assert watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), WAIT_S, "")
     nuc.say_bye("stopped by SIGINT")
-    until(lambda: "nuc" in watch.byes, "the bye arrived")
+    wait_until(lambda: "nuc" in watch.byes, "the bye arrived", timeout_s=WAIT_S, poll_s=0.01)
     nuc.close()
     assert noticed.wait(WAIT_S)
     assert lost_hosts == ["nuc"] and watch.lost["nuc"].reason == "stopped by SIGINT"
@@ -123,12 +114,14 @@ def test_a_restarted_host_takes_over_before_the_run_begins(sessions, caplog):
     mine, theirs = sessions
     watch = HostWatch(mine, "p", "nuc", TIMEOUTS, "d1")
     old = token(theirs, "laptop", "ready", zid="01d")
-    until(lambda: watch.ready.get("laptop") == "01d", "the old laptop is seen")
+    wait_until(lambda: watch.ready.get("laptop") == "01d", "the old laptop is seen", timeout_s=WAIT_S, poll_s=0.01)
     new = token(theirs, "laptop", "ready", zid="2e3")
-    until(lambda: watch.claims.get("laptop") == ["01d", "2e3"], "the new laptop is seen")
+    wait_until(
+        lambda: watch.claims.get("laptop") == ["01d", "2e3"], "the new laptop is seen", timeout_s=WAIT_S, poll_s=0.01
+    )
     assert watch.ready["laptop"] == "01d"
     old.undeclare()
-    until(lambda: watch.ready.get("laptop") == "2e3", "the new laptop takes over")
+    wait_until(lambda: watch.ready.get("laptop") == "2e3", "the new laptop takes over", timeout_s=WAIT_S, poll_s=0.01)
     base = token(theirs, "base", "ready")
     assert watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), WAIT_S, "")
     for t in (new, base):
@@ -168,7 +161,12 @@ def test_a_stop_ends_the_wait_and_a_host_that_left_is_waited_for_again(sessions,
     with pytest.raises(TransportError, match=r"after 0.5 s \(wait_timeout_s\) waiting for host\(s\) base \(hint\)"):
         watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), 0.5, " (hint)")
     nuc.undeclare()
-    until(lambda: any("host nuc left before the run began" in r.message for r in caplog.records), "nuc left")
+    wait_until(
+        lambda: any("host nuc left before the run began" in r.message for r in caplog.records),
+        "nuc left",
+        timeout_s=WAIT_S,
+        poll_s=0.01,
+    )
     with pytest.raises(TransportError, match="waiting for host.s. nuc"):
         watch.wait_ready(["nuc", "laptop"], threading.Event(), 0.5, "")
     assert not watch.lost

@@ -20,8 +20,10 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import popen_rover, read_bag, run_rover
-from netns import ADDRESSES, Lab, lab_certs, pipeline_file, require_root, wait_until
+from helpers import popen_rover, read_bag, run_rover, wait_until
+from netns import ADDRESSES, Lab, lab_certs, pipeline_file, require_root
+
+pytestmark = pytest.mark.netns  # builds network namespaces (tests/netns.py)
 
 HOSTS = ("laptop", "base", "nuc")
 """Start order: the NUC, where the others connect, last (they retry until it listens)."""
@@ -460,4 +462,4 @@ def test_wait_until_fails_when_a_process_ends_first(lab):
     """The mid-run trigger never waits for a run that already ended: it fails, with its stderr."""
     done = lab.spawn("base", sys.executable, "-c", "import sys; sys.exit('bye')", stderr=subprocess.PIPE, text=True)
     with pytest.raises(AssertionError, match=r"(?s)ended \(1\).*bye"):
-        wait_until(lambda: False, [done], "never", timeout_s=30)
+        wait_until(lambda: False, "never", procs=[done], timeout_s=30)

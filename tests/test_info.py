@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import T0_NS, reference_data, run_rover, write_imu_dataset
+from helpers import T0_NS, reference_data, run_rover, write_imu_dataset
 from mcap.reader import make_reader
 
 from rover.cli.commands import main

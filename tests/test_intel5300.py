@@ -11,7 +11,7 @@ import struct
 
 import numpy as np
 import pytest
-from conftest import reference_data
+from helpers import reference_data
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -244,12 +244,14 @@ def test_decode_bfee_judges_each_input_on_its_own(small):
     assert len(empty) == 0 and empty.csi.shape == (0, 30, 0, 0)
 
 
+@pytest.mark.slow
 def test_streaming_equals_whole_file_at_every_split_point(small):
     whole = decode_log(small)
     for cut in range(len(small) + 1):
         assert_same(streamed(small, [cut]), whole)
 
 
+@pytest.mark.slow
 def test_streaming_equals_whole_file_at_random_split_points(sample):
     rng = np.random.default_rng(2015)
     whole = decode_log(sample, scaled=False)

@@ -4,12 +4,15 @@ recording replayed in one process gives the live run's trajectory and tags."""
 
 from __future__ import annotations
 
+import pytest
 import yaml
-from conftest import run_rover
+from helpers import run_rover
 from live_session import live_scenario, run_session
 from netns import require_root
 
 from rover.formats.bag import BagReader
+
+pytestmark = [pytest.mark.netns, pytest.mark.slow]  # builds network namespaces (tests/netns.py)
 
 LIVE_S = 30.0
 """real time the session runs once every sensor streams"""

@@ -11,7 +11,7 @@ import time
 from itertools import pairwise
 
 import pytest
-from conftest import read_bag, run_rover
+from helpers import read_bag, run_rover
 from mip_device import Command, MipDevice, Sent
 from scripted_port import ScriptedPort
 

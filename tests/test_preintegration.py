@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import T0_NS, read_bag
+from helpers import T0_NS, read_bag
 
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
@@ -77,6 +77,7 @@ def check_against_truth(out, poses):
     return np.array(errors), np.array(yaw_errors)
 
 
+@pytest.mark.slow
 def test_increments_match_the_ground_truth(run, caplog):
     imu, poses = run
     with caplog.at_level(logging.INFO):

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import T0_NS
+from helpers import T0_NS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from conftest import T0_NS, read_bag
+from helpers import T0_NS, read_bag
 from rosbags.highlevel import AnyReader
 
 from rover.drivers.recorder import Recorder, RecorderParams

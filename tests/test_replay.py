@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import T0_NS, read_bag, write_imu_dataset
+from helpers import T0_NS, read_bag, write_imu_dataset
 from mcap.reader import make_reader
 
 from rover.cli.commands import main
@@ -76,7 +76,7 @@ def test_bad_datasets_are_bad_input(tmp_path):
 
 
 def test_speed_from_the_command_line(tmp_path):
-    from conftest import run_rover
+    from helpers import run_rover
 
     path = write_imu_dataset(tmp_path / "d.mcap", 400, odom_every=0)
     proc = run_rover("run", "--dataset", str(path), "--speed", "20", "--output", str(tmp_path / "o"), cwd=tmp_path)
@@ -120,7 +120,7 @@ def test_a_corrupt_chunk_met_while_replaying_is_bad_input(tmp_path):
 
 
 def test_a_corrupt_chunk_ends_rover_run_with_status_2_and_one_line(tmp_path):
-    from conftest import run_rover
+    from helpers import run_rover
 
     path = corrupt_last_chunk(write_imu_dataset(tmp_path / "d.mcap", 6000, odom_every=0))
     proc = run_rover("-q", "run", "--dataset", str(path), "--output", str(tmp_path / "out"), cwd=tmp_path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import reference_data, run_rover
+from helpers import reference_data, run_rover
 
 from rover.errors import BadInput, SpecError
 from rover.formats.rig import (

@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 
 import pytest
-from conftest import T0_NS, read_bag, reference_data, run_rover
+from helpers import T0_NS, read_bag, reference_data, run_rover
 
 from rover.cli.registry import BUILTINS
 from rover.drivers.rig_source import RigSource, RigSourceParams

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import xxhash
 import zenoh
-from conftest import free_port, run_rover
+from helpers import free_port, run_rover
 from rmw_bytes import legacy_attachment
 from rosbags.typesys import Stores, get_typestore
 

@@ -7,7 +7,7 @@ import json
 import time
 
 import pytest
-from conftest import T0_NS
+from helpers import T0_NS
 
 from rover.drivers.run_outputs import RUN_FILES, RunOutputs, RunOutputsParams
 from rover.errors import OutputFailed
@@ -80,6 +80,7 @@ def test_an_output_that_cannot_be_written_fails_and_the_failed_run_keeps_only_ru
     assert run["status"] == "failed" and run["files"] == []
 
 
+@pytest.mark.slow
 def test_an_interrupt_with_no_time_left_skips_the_metrics_with_a_note(tmp_path, simulated):
     op = RunOutputs(RunOutputsParams(out=str(tmp_path / "out"), dataset=str(simulated("paper", 1))))
     op.start()
@@ -92,6 +93,7 @@ def test_an_interrupt_with_no_time_left_skips_the_metrics_with_a_note(tmp_path, 
     assert run["notes"] == [f"metrics and figures skipped after the interrupt: run `rover eval {op.out} --figures`"]
 
 
+@pytest.mark.slow
 def test_metrics_that_cannot_be_computed_leave_the_run_complete_with_a_note(tmp_path, simulated):
     """The estimate starts 1,000 s after the dataset's 180 s of truth ends (its stamps are made up
     here): no metrics.json, a note saying why, and the estimates stay."""

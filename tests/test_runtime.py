@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from conftest import free_port, popen_rover, read_bag, run_rover, write_imu_dataset
+from helpers import free_port, popen_rover, read_bag, run_rover, write_imu_dataset
 
 from rover.messages import cdr_stamp_ns, deserialize, header, make, serialize
 from rover.transport import codec, keys
@@ -92,6 +92,7 @@ def run_hosts(pipeline: Path, hosts: list[str], *args: str, timeout: float = 120
     return results
 
 
+@pytest.mark.slow
 def test_three_hosts_give_the_same_bytes_as_one_process(tmp_path, dataset):
     pipeline = tmp_path / "toy.yaml"
     pipeline.write_text(TOY)
@@ -117,6 +118,7 @@ def test_three_hosts_give_the_same_bytes_as_one_process(tmp_path, dataset):
     assert one == three
 
 
+@pytest.mark.slow
 def test_100k_messages_between_two_processes_none_lost_in_order(tmp_path):
     dataset = write_imu_dataset(tmp_path / "big.mcap", 100_000, odom_every=0)
     pipeline = tmp_path / "two.yaml"
@@ -344,6 +346,7 @@ def test_an_operator_editing_a_shared_input_fails_in_one_line_naming_the_field(t
     assert "writable=True" in errors[0] and "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_garbage_on_an_input_key_is_counted_and_the_pipeline_keeps_running(tmp_path):
     pipeline = tmp_path / "live.yaml"
     pipeline.write_text(LIVE)
@@ -525,6 +528,7 @@ operators:
 HOST_NAMES = ("nuc", "base", "laptop")
 
 
+@pytest.mark.slow
 def test_with_a_direct_link_losing_the_nuc_does_not_cut_base_from_the_laptop(tmp_path, dataset):
     """Base listens too and the laptop connects to both: kill -9 of the NUC mid-run leaves base's
     stream to the laptop whole (every pose), and both report the NUC lost, not as a hub (exit 3)."""

@@ -15,12 +15,14 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import write_imu_dataset
+from helpers import write_imu_dataset
 from netns import ADDRESSES, TESTS, Lab, lab_certs, require_root, rover_env, security_block
 
 from rover.cli.registry import BUILTINS
 from rover.pipeline.validation import load_and_check
 from rover.security.certs import issue
+
+pytestmark = pytest.mark.netns  # builds network namespaces (tests/netns.py)
 
 PORT = 7447
 NUC = f"tls/{ADDRESSES['nuc']}:{PORT}"

@@ -9,7 +9,7 @@ import shutil
 from pathlib import Path
 
 import yaml
-from conftest import run_rover
+from helpers import run_rover
 
 from rover.pipeline.spec import PipelineSpec, parse, read_document
 from rover.pipeline.validation import served_addresses

@@ -9,7 +9,7 @@ import signal
 import numpy as np
 import pytest
 import yaml
-from conftest import popen_rover, read_bag, run_rover, stop_while_writing
+from helpers import popen_rover, read_bag, run_rover, stop_while_writing
 
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import Receiver, load_scenario
@@ -78,6 +78,7 @@ def test_packed_records_decode_back_within_quantization():
         np.testing.assert_array_equal(decode_bfee([record], scaled=False).csi[0, :, :, 0], quantized[k])
 
 
+@pytest.mark.slow
 def test_the_same_seed_gives_the_same_bytes(tmp_path, short_run):
     again = tmp_path / "again.mcap"
     simulate(load_scenario("paper", SHORT), 11, again)
@@ -123,6 +124,7 @@ QUICK = ("--set", "trajectory.laps=1", "--set", "trajectory.speed_m_s=1.0")
 """A 41 s run instead of 180 s: quicker to simulate, and still a moment to write (for the signal tests)."""
 
 
+@pytest.mark.slow
 def test_cli_round_trip_simulate_info_replay(tmp_path):
     out = tmp_path / "sim.mcap"
     proc = run_rover("simulate", "--seed", "4", *QUICK, "-o", str(out))

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from conftest import free_port, run_rover
+from helpers import free_port, run_rover
 from rich.console import Console
 
 from rover.errors import TransportError

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from conftest import reference_data
+from helpers import reference_data
 
 from rover.cli.commands import main
 from rover.errors import BadInput

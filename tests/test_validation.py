@@ -6,7 +6,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, read_bag, run_rover, write_imu_dataset
+from helpers import ROOT, read_bag, run_rover, write_imu_dataset
 
 from rover.cli.registry import BUILTINS
 from rover.errors import SpecError

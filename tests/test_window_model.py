@@ -180,6 +180,7 @@ def compare(windows: list[tuple[Shape, UpdateData]]) -> dict[str, int]:
     return seen
 
 
+@pytest.mark.slow
 def test_every_captured_window_has_the_same_optimum_both_ways(windows):
     seen = compare(windows)
     assert seen["windows"] >= 100, seen
@@ -196,6 +197,7 @@ def test_windows_with_outlier_bearings_have_the_same_optimum_both_ways():
     assert seen["hinge"] > 0, seen  # and rows whose cheirality hinge was active
 
 
+@pytest.mark.slow
 def test_batch_mode_solves_with_the_model(lap_runs):
     inputs = slam_inputs(lap_runs["with"], 10.0)
     solved: list[Shape] = []

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import T0_NS
+from helpers import T0_NS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -378,7 +378,7 @@ class Slam(Operator):
         if self.params.wheel and self.speed is None:
             log.warning(
                 "slam: no wheel odometry arrived: the speed came from the IMU and the bearings alone "
-                "(set slam.wheel=false when that is intended; see the README's benchmarks for the accuracy)"
+                "(set slam.wheel=false when that is intended; docs/benchmarks.md gives the accuracy of both)"
             )
         std = np.sqrt(np.maximum(np.diag(w.bias_covariance), 0.0)) if w.bias_covariance.size else np.full(5, np.inf)
         if w.scale and self.speed is not None:

@@ -1,0 +1,1 @@
+"""An example package of your own operators (see ../README.md)."""
