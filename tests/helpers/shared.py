@@ -33,9 +33,9 @@ def once(factory: pytest.TempPathFactory, name: str, make: Callable[[Path], dict
             try:
                 result = {"ok": make(folder)}
             except Exception as exc:  # recorded, so that the other workers fail alike instead of retrying
-                result = {"error": f"{type(exc).__name__}: {exc}"}
+                result = {"error": {"message": f"{type(exc).__name__}: {exc}"}}
             done.write_text(json.dumps(result))
         result = json.loads(done.read_text())
     if "error" in result:
-        raise AssertionError(f"shared {name} failed: {result['error']}")
+        raise AssertionError(f"shared {name} failed: {result['error']['message']}")
     return folder, result["ok"]
