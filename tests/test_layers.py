@@ -20,7 +20,14 @@ FOLDERS = {
 
 FORBIDDEN = {
     "rover": ("rover.operators", "rover.drivers", "rover.datasets", "rover.cli"),
-    "transport": ("rover.operators", "rover.drivers", "rover.datasets", "rover.cli", "rover.pipeline", "rover.security"),
+    "transport": (
+        "rover.operators",
+        "rover.drivers",
+        "rover.datasets",
+        "rover.cli",
+        "rover.pipeline",
+        "rover.security",
+    ),
     "operators": ("rover.drivers", "rover.datasets", "rover.cli"),
     "drivers": ("rover.datasets", "rover.cli"),
     "datasets": ("rover.drivers", "rover.cli"),
