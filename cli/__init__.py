@@ -7,6 +7,6 @@ import os
 # Set before numpy loads; an explicit setting in the environment wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from rover.cli.commands import main  # noqa: E402
+from rover.cli.app import main  # noqa: E402
 
 __all__ = ["main"]

@@ -2,6 +2,6 @@
 
 import sys
 
-from rover.cli.commands import main
+from rover.cli.app import main
 
 sys.exit(main())

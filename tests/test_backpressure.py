@@ -76,7 +76,7 @@ def peak_rss_mb(pipeline: Path) -> float:
     """`rover run PIPELINE` in a fresh interpreter; its peak resident memory in MB."""
     code = (
         "import resource, sys\n"
-        "from rover.cli.commands import main\n"
+        "from rover.cli.app import main\n"
         f"status = main(['run', {str(pipeline)!r}])\n"
         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
         "sys.exit(status)\n"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from helpers import reference_data
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.formats.intel5300 import read_dat
 from rover.formats.rig import rig_from_text
 from rover.operators.aoa.bare_log import log_bursts, log_stamps_ns

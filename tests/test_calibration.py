@@ -19,7 +19,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from test_cli_contract import FUZZ, _mutated, assert_contract, run_cli, text_or_bytes
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.datasets.scenario import load_scenario
 from rover.errors import BadInput
 from rover.formats.bag import BagWriter
@@ -211,6 +211,17 @@ def test_lgtm_offsets_follow_the_antennas_through_a_permutation_change():
     assert np.all(np.abs(gap) < CALIBRATION_BUDGET_DEG)
 
 
+def test_a_frame_takes_the_one_true_angle_of_its_stamp_and_channel():
+    """A frame matches an angle of the same stamp and channel; a frame of channel 0 takes the angle's
+    channel when there is exactly one; an ambiguous or missing angle leaves the frame out."""
+    from rover.operators.aoa.calibration import match_truth
+
+    stamps = [10, 20, 30, 40, 50]
+    channels = [36, 0, 0, 40, 36]
+    angles = {10: [(36, 0.1), (40, 0.2)], 20: [(44, 0.3)], 30: [(36, 0.4), (40, 0.5)], 40: [(36, 0.6)]}
+    assert match_truth(stamps, channels, angles) == ([0, 1], [36, 44], [0.1, 0.3])
+
+
 # --- a simulated dataset -------------------------------------------------------------------------
 
 
@@ -219,7 +230,7 @@ def test_simulated_dataset_gives_the_true_offsets_per_channel(simulated):
     """Without wall reflections the only errors are noise and quantization: each tag channel's
     calibration equals the scenario's true offsets modulo pi (the simulator shifts chains by pi
     per channel), within standard errors."""
-    from rover.cli.commands import _calibrate_dataset
+    from rover.cli.calibrate import _calibrate_dataset
 
     path = simulated("paper", 1, "trajectory.laps=1", "room.wall_reflection=0")
     truth = np.array(load_scenario("paper").receiver.phase_offsets_rad)

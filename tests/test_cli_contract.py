@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap.writer import CompressionType, Writer
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.formats.bag import BagReader
 from rover.messages import ros2_msgdef
 

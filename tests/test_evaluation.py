@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from helpers import run_rover
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.evaluation.metrics import Poses2D, Rigid2D, RunRecord, Truth, fit_rigid, published_honesty, trajectory_errors
 
 T0 = 1_700_000_000.0

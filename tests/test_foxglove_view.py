@@ -23,7 +23,7 @@ from helpers import ROOT, T0_NS, popen_rover, wait_until
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
-from rover.cli.commands import parser
+from rover.cli.app import parser
 from rover.cli.registry import BUILTINS
 from rover.cli.view import add_view, load_with_view
 from rover.drivers.foxglove_view import FoxgloveView, FoxgloveViewParams

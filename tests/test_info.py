@@ -10,7 +10,7 @@ import pytest
 from helpers import T0_NS, reference_data, run_rover, write_imu_dataset
 from mcap.reader import make_reader
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.formats.bag import BagWriter
 from rover.messages import header, make
 

@@ -10,7 +10,7 @@ import pytest
 from helpers import T0_NS, read_bag, write_imu_dataset
 from mcap.reader import make_reader
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.drivers.replay import DatasetReplay, ReplayParams
 from rover.errors import BadInput
 from rover.formats.bag import BagWriter

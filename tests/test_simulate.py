@@ -159,7 +159,7 @@ def test_scenario_mistakes_are_reported():
 
 
 def test_an_output_that_is_a_directory_is_one_line_before_any_work(tmp_path, capsys):
-    from rover.cli.commands import main
+    from rover.cli.app import main
 
     scenario = tmp_path / "broken.yaml"
     scenario.write_text("room: {size_m: [-1, 4]}\n")  # the output is checked first: this is never read
@@ -187,7 +187,7 @@ def test_a_signal_while_writing_leaves_no_partial(tmp_path, signum, status):
 
 
 def test_simulating_onto_the_scenario_file_is_refused(tmp_path, capsys):
-    from rover.cli.commands import main
+    from rover.cli.app import main
 
     scenario = tmp_path / "room.yaml"
     scenario.write_text("room: {size_m: [6.0, 4.0]}\n")

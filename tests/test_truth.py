@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from helpers import reference_data
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.errors import BadInput
 from rover.formats.truth import parse_tags_csv, read_tags_csv, read_tum
 

@@ -14,7 +14,7 @@ from helpers import T0_NS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover.cli.commands import main
+from rover.cli.app import main
 from rover.datasets.scenario import load_scenario
 from rover.formats.bag import BagWriter
 from rover.messages import header, make

@@ -17,13 +17,13 @@ CLI (`rover calibrate`) reads the files.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from rover.errors import BadInput
-from rover.formats.intel5300 import SUBCARRIERS
+from rover.formats.intel5300 import SUBCARRIERS, decode_bfee
 from rover.formats.wifi import phase_jump_step_rad
 from rover.geometry import wrap_angle
 from rover.operators.aoa.array import steering
@@ -152,6 +152,46 @@ def estimate_offsets(
         jump_step_rad=step,
         outliers=int(len(u) - keep.sum()),
     )
+
+
+def match_truth(
+    stamps_ns: Sequence[int], channels: Sequence[int], angles: Mapping[int, Sequence[tuple[int, float]]]
+) -> tuple[list[int], list[int], list[float]]:
+    """The frames with exactly one true angle of the same stamp and channel (a frame of channel 0 takes
+    the angle's channel): their indices, channels and angles (rad)."""
+    index, channel_of, angle_of = [], [], []
+    for k, (stamp, channel) in enumerate(zip(stamps_ns, channels, strict=True)):
+        match = [(c, a) for c, a in angles.get(stamp, []) if channel in (0, c)]
+        if len(match) == 1 and (channel or match[0][0]):
+            index.append(k)
+            channel_of.append(channel or match[0][0])
+            angle_of.append(match[0][1])
+    return index, channel_of, angle_of
+
+
+def offsets_from_truth(
+    stamps_ns: Sequence[int],
+    channels: Sequence[int],
+    bfee: Sequence[bytes],
+    angles: Mapping[int, Sequence[tuple[int, float]]],
+    antennas_m: np.ndarray,
+) -> list[Calibration]:
+    """One calibration per channel from CSI Tool records each with its true angle (`match_truth`); the
+    records with as many receive chains as the array has antennas count."""
+    index, channel_of, angle_of = match_truth(stamps_ns, channels, angles)
+    if not index:
+        raise BadInput("no CSI frame has a true angle with its stamp and channel")
+    records = decode_bfee([bfee[k] for k in index])
+    m = len(antennas_m)
+    rows = records.offset[records.nrx == m]
+    if not len(rows):
+        raise BadInput(f"no CSI frame with {m} receive chains and a true angle")
+    channel_arr, angle_arr = np.array(channel_of)[rows], np.array(angle_of)[rows]
+    csi = records.csi[records.nrx == m, :, :m, 0]
+    return [
+        estimate_offsets(csi[channel_arr == c], antennas_m, int(c), angle_arr[channel_arr == c])
+        for c in np.unique(channel_arr)
+    ]
 
 
 def circular_std_deg(resultant: np.ndarray) -> np.ndarray:

@@ -1,0 +1,77 @@
+"""`rover aoa`: angles of arrival from a bare CSI Tool log, every candidate per burst."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import Any
+
+from rover.cli.args import burst
+from rover.errors import BadInput
+
+
+def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
+    """`rover aoa` and its options."""
+    p = sub.add_parser(
+        "aoa", parents=[common], help="angles of arrival from a bare CSI Tool log (no robot): every candidate per burst"
+    )
+    p.add_argument("log", metavar="LOG.dat", help="a CSI Tool log (log_to_file output)")
+    p.add_argument("--setup", required=True, help="rig file: the receiver's antennas (and channel, calibration)")
+    p.add_argument("--calibration", help="a `rover calibrate --out` file: its phase offsets replace the setup's")
+    p.add_argument("--channel", type=int, help="the channel the log was recorded on (default: receiver.channel)")
+    p.add_argument("--burst", type=burst, default=50, help="packets per burst (default 50, at least 3)")
+    p.add_argument("--csv", help="also write the rows to this CSV file")
+    p.add_argument("--force", action="store_true", help="replace an existing --csv file")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Angles of arrival from a bare CSI Tool log: one row per burst, every candidate with its power."""
+    from rover.formats.atomic_file import write_aside
+    from rover.formats.bag import check_output
+    from rover.formats.intel5300 import read_dat
+    from rover.formats.rig import load_rig
+    from rover.formats.text import read_text
+    from rover.formats.wifi import channel_freq_hz
+    from rover.operators.aoa.bare_log import log_bursts, with_calibration
+
+    out = check_output(args.csv, force=args.force) if args.csv else None  # before any work
+    rig = load_rig(args.setup)
+    if args.calibration:
+        rig = with_calibration(rig, read_text(Path(args.calibration)), args.calibration)
+    channel = args.channel if args.channel is not None else rig.receiver_channel
+    if channel is None:
+        raise BadInput(f"{args.setup}: give --channel N, the channel the log was recorded on (or receiver.channel)")
+    try:
+        channel_freq_hz(channel)
+    except ValueError:
+        raise BadInput(f"--channel: {channel} is not a WiFi channel number") from None
+    source = Path(args.log)
+    if not source.is_file():
+        raise BadInput(f"{source}: {'is a directory' if source.is_dir() else 'no such file'}")
+    try:
+        records = read_dat(source)
+    except OSError as exc:
+        raise BadInput(f"{source}: cannot read: {exc.strerror or exc}") from None
+    try:
+        bursts = log_bursts(records, rig, channel, args.burst)
+    except BadInput as exc:
+        raise BadInput(f"{source}: {exc}") from None
+    lines = ["time_s,packets,angle_deg,std_deg,quality,candidates_deg,candidate_powers"]
+    print(f"{source.name}: {len(records.nrx)} records, {len(bursts)} bursts of {args.burst} packets, channel {channel}")
+    print(f"{'time s':>8} {'packets':>7} {'angle deg':>9} {'std deg':>7}  candidates deg (power)")
+    for b in bursts:
+        t = (b.header.stamp.sec * 1_000_000_000 + b.header.stamp.nanosec) / 1e9
+        angles = [math.degrees(a) for a in b.candidate_angles_rad]
+        powers = list(b.candidate_powers)
+        shown = "  ".join(f"{a:6.1f} ({p:.2f})" for a, p in zip(angles, powers, strict=True))
+        print(f"{t:8.3f} {b.packets:7d} {math.degrees(b.angle_rad):9.1f} {math.degrees(b.std_rad):7.1f}  {shown}")
+        lines.append(
+            f"{t:.6f},{b.packets},{math.degrees(b.angle_rad):.2f},{math.degrees(b.std_rad):.2f},{b.quality},"
+            f"{';'.join(f'{a:.2f}' for a in angles)},{';'.join(f'{p:.3f}' for p in powers)}"
+        )
+    if out is not None:
+        write_aside(out, lambda partial: partial.write_text("\n".join(lines) + "\n"))
+        print(f"wrote {out}")
+    return 0

@@ -1,0 +1,97 @@
+"""What several commands share: exit statuses, the default pipeline, `--set` and the argument types."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from rover.errors import BadInput
+from rover.pipeline.yamlpos import parse_scalar
+
+EXIT_PARTIAL = 3
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+
+
+def default_pipeline() -> Path:
+    """The pipeline shipped inside the package (identical to the repository's pipeline.yaml)."""
+    return Path(str(resources.files("rover").joinpath("pipeline.yaml")))
+
+
+def overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The pipeline's `${var}` and `OPERATOR.PARAM` values given by `--set` and the options that stand for one."""
+    values: dict[str, Any] = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise BadInput(f"--set {item!r}: expected NAME=VALUE")
+        values[key.strip()] = parse_scalar(value, f"--set {key.strip()}")
+    if getattr(args, "dataset", None) is not None:
+        values["dataset"] = args.dataset
+    if getattr(args, "output", None) is not None:
+        values["output"] = args.output
+    if getattr(args, "speed", None) is not None:
+        values["speed"] = parse_scalar(args.speed, "--speed")
+    if getattr(args, "timing_topic", None) is not None:
+        values["timing_topic"] = args.timing_topic
+    return values
+
+
+def add_set(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="NAME=VALUE",
+        help="set a ${NAME} variable of the pipeline, or OPERATOR.PARAM (e.g. slam.wheel=false) "
+        "typed and checked like the file's own params",
+    )
+
+
+def degrees(text: str) -> float:
+    """--angle-deg: a finite number of degrees."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"a number of degrees, got {text!r}")
+    return value
+
+
+def seconds(text: str) -> float:
+    """--start/--end: a number of seconds from 0 to 2**31 (a ROS 2 stamp's range)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 <= value < 2**31:
+        raise argparse.ArgumentTypeError(f"seconds from 0 to 2**31, got {text!r}")
+    return value
+
+
+def burst(text: str) -> int:
+    """--burst: a whole number of packets, at least the aoa operator's `min_packets`."""
+    from rover.operators.aoa.operator import AoaParams
+
+    least = AoaParams().min_packets
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < least:
+        raise argparse.ArgumentTypeError(f"a whole number of packets from {least}, got {text!r}")
+    return value
+
+
+def seed(text: str) -> int:
+    """--seed: a whole number from 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a whole number from 0, got {text!r}")
+    return value

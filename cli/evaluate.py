@@ -1,0 +1,60 @@
+"""`rover eval`: a run's errors against ground truth (robot, tags, AoA)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from rover.errors import BadInput
+
+
+def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
+    """`rover eval` and its options."""
+    p = sub.add_parser(
+        "eval", parents=[common], help="errors of a run against ground truth (robot, tags, AoA), as evo computes them"
+    )
+    p.add_argument("run", help="the --output directory of a `rover run`")
+    p.add_argument("--truth", help="dataset or TUM file with the true trajectory (default: the run's dataset)")
+    p.add_argument("--tags", help="true tag positions (CSV: id,channel,x,y,z,nlos)")
+    p.add_argument("--t-max-diff", type=float, default=0.01, help="largest stamp gap when pairing poses (s)")
+    p.add_argument("--json", action="store_true", help="print metrics.json instead of the table")
+    p.add_argument("--figures", action="store_true", help="also draw the figures into the run's folder")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from rover.evaluation.metrics import evaluate, render
+    from rover.formats.run_dir import load_run, load_truth, read_run_description
+
+    description = read_run_description(args.run)
+    if description is not None and description.status == "failed":
+        raise BadInput(f"{args.run}: the run failed, nothing to evaluate: {description.reason}")
+    if description is not None and description.status in ("interrupted", "partial"):
+        logging.getLogger("rover.eval").warning(
+            "%s: the run is %s (%s): its results cover part of the dataset",
+            args.run,
+            description.status,
+            description.reason,
+        )
+    run = load_run(args.run)
+    source = args.truth or (description.dataset if description is not None else None)
+    if source is None:
+        raise BadInput(f"{args.run}: the run names no dataset with ground truth: pass --truth DATASET_OR_TUM")
+    truth = load_truth(source, args.tags)
+    if truth is None:
+        raise BadInput(f"{source}: no ground truth (/groundtruth/pose) in this dataset: pass --truth")
+    if not truth.tags and args.tags is None and str(source).endswith((".tum", ".txt")):
+        logging.getLogger("rover.eval").warning("no tag truth: pass --tags CSV for tag errors")
+    metrics = evaluate(run, truth, args.t_max_diff)
+    sys.stdout.write(json.dumps(metrics, indent=2) + "\n" if args.json else render(metrics))
+    if args.figures:
+        from rover.evaluation.figures import write_figures
+
+        written = write_figures(run, truth, Path(args.run))
+        print(f"wrote {', '.join(p.name for p in written)} in {args.run}", file=sys.stderr)
+    return 0
