@@ -6,7 +6,7 @@ import copy
 import math
 
 import numpy as np
-from slam_scenes import EXACT_IMU, Scene, angles, edge, estimate, scene, tag_errors, true_angle
+from slam_scenes import EXACT_IMU, INDEPENDENT_BURSTS, Scene, angles, edge, estimate, scene, tag_errors, true_angle
 from test_jumps import burst_candidates
 
 from rover.operators.slam.sliding_window import SEARCH_HISTORY, SlidingWindow, WindowSettings
@@ -14,7 +14,7 @@ from rover.operators.slam.sliding_window import SEARCH_HISTORY, SlidingWindow, W
 
 def test_noise_free_matches_truth_to_millimetres():
     sc = scene(seconds=12.0)
-    w, final = estimate(sc, WindowSettings(window=30), angles(sc), std_deg=1.0)
+    w, final = estimate(sc, WindowSettings(window=30, **INDEPENDENT_BURSTS), angles(sc), std_deg=1.0)
     assert tag_errors(sc, w).max() < 0.005
     assert np.abs(final - sc.position).max() < 0.01
     assert w.observable().all()
@@ -37,8 +37,10 @@ def test_a_tag_seen_from_one_place_is_not_reported_known():
 def test_huber_resists_wrong_path_bearings():
     sc = scene(seconds=15.0)
     measured = angles(sc, noise_deg=2.0, outliers=0.2, seed=3)
-    robust, _ = estimate(sc, WindowSettings(window=30), measured, std_deg=2.0, update_every=2)
-    plain, _ = estimate(sc, WindowSettings(window=30, huber_sigma=1e4), measured, std_deg=2.0, update_every=2)
+    robust, _ = estimate(sc, WindowSettings(window=30, **INDEPENDENT_BURSTS), measured, std_deg=2.0, update_every=2)
+    plain = estimate(
+        sc, WindowSettings(window=30, huber_sigma=1e4, **INDEPENDENT_BURSTS), measured, 2.0, update_every=2
+    )[0]
     assert tag_errors(sc, robust).mean() < 0.5 * tag_errors(sc, plain).mean()
 
 

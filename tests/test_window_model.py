@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from slam_scenes import angles, estimate, scene
+from slam_scenes import INDEPENDENT_BURSTS, angles, estimate, scene
 
 from rover.formats.bag import BagReader
 from rover.operators.slam.operator import Slam, SlamParams
@@ -98,7 +98,11 @@ def windows(lap_runs) -> list[tuple[Shape, UpdateData]]:
 def outlier_windows() -> list[tuple[Shape, UpdateData]]:
     sc = scene(seconds=8.0)
     measured = angles(sc, noise_deg=2.0, outliers=0.2, seed=3)
-    return captured_while(lambda: estimate(sc, WindowSettings(window=20), measured, 2.0))[::EVERY]
+    # three convex passes and Gauss-Newton steps per update, as these windows were first captured with:
+    # under the shipped one pass and two steps, one window's newest tag is still so loosely held along
+    # its range that the two solvers' stopping points differ by 0.18 mm there (beyond STATES_M)
+    settings = WindowSettings(window=20, reweight_passes=3, refine_iterations=3, **INDEPENDENT_BURSTS)
+    return captured_while(lambda: estimate(sc, settings, measured, 2.0))[::EVERY]
 
 
 def hessian(shape: Shape, d: UpdateData, x: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ from rover.geometry import quaternion_from_yaw, yaw_from_quaternion
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings, bias_jacobian
-from rover.pipeline.params import NonNegativeInt, PositiveFloat, PositiveInt, Range
+from rover.pipeline.params import PositiveFloat, Range
 
 log = logging.getLogger("rover.slam")
 
@@ -52,17 +52,6 @@ class SlamParams(WindowSettings):
     path: its serialization grows with the run (53 ms at 3000 poses, measured)"""
     wheel: bool = True
     """fuse the wheel odometry when the input is wired and carries data"""
-    aoa_std_scale: PositiveFloat = 4.0
-    """multiplies each AoA's std: the operator's std describes one burst, but consecutive bursts of
-    a tag share most of their multipath error, so each carries less information than its own std
-    says (swept 1.5/2/3/4 over the eight robustness runs: 4 is best on average, 1.5 clearly worst)"""
-    reweight_passes: PositiveInt = 1
-    """convex solves per update at most (while a tag in use is not localized): each update starts
-    from the last one's estimate, so reweighting goes on over the next epochs; on `paper` seeds
-    1-6, `long_hall` and the sample recording the estimates are the same as with 3 (to 0.1 mm),
-    the work per update bounded. Batch mode, which solves once, takes at least 3"""
-    refine_iterations: NonNegativeInt = 2
-    """Gauss-Newton steps per update at most (batch mode: at least 3), likewise"""
     wheel_max_age_s: PositiveFloat = 0.2
     """a wheel speed older than this at an epoch is not used"""
 
