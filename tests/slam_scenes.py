@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -14,7 +15,7 @@ EXACT_COVARIANCE = np.diag([1e-8, 1e-8, 1e-10, 1e-10])
 EXACT_IMU = {"accel_bias": False}
 """WindowSettings for tests about something else than the IMU: this odometry has no bias, and bias
 states would leave the scale to the bearings (less sharp than exact odometry)"""
-INDEPENDENT_BURSTS = {"aoa_std_scale": 1.0}
+INDEPENDENT_BURSTS: dict[str, Any] = {"aoa_std_scale": 1.0}
 """WindowSettings for tests of the window's numbers at a known noise: a scene draws each bearing's
 noise on its own, with the std the window is told, so there is no multipath shared between
 consecutive bursts for the shipped `aoa_std_scale` to stand for"""

@@ -9,7 +9,8 @@ import numpy as np
 from slam_scenes import EXACT_IMU, INDEPENDENT_BURSTS, Scene, angles, edge, estimate, scene, tag_errors, true_angle
 from test_jumps import burst_candidates
 
-from rover.operators.slam.sliding_window import SEARCH_HISTORY, SlidingWindow, WindowSettings
+from rover.operators.slam.sliding_window import SlidingWindow, WindowSettings
+from rover.operators.slam.tag_finder import SEARCH_HISTORY
 
 
 def test_noise_free_matches_truth_to_millimetres():
@@ -177,7 +178,7 @@ def run_with_jumps(carried: np.ndarray, seed: int = 0, update_every: int = 2):
             w.update()
             t = w.tag_ids.index(1)
             trace.append(
-                (w.active[t], w.tag_covariance[t].copy(), w.tag_positions()[t].copy(), len(w.history.get(t, [])))
+                (w.active[t], w.tag_covariance[t].copy(), w.tag_positions()[t].copy(), len(w.finder.history.get(t, [])))
             )
     return sc, w, trace
 
@@ -208,13 +209,13 @@ def test_a_tag_with_jump_candidates_waits_for_the_search_then_locks_its_combinat
         np.testing.assert_allclose(cov, prior, rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(position, waiting[0][2], rtol=0, atol=1e-9)
     assert [row[3] for row in waiting] == sorted(row[3] for row in waiting)
-    assert waiting[-1][3] >= w.search.min_bearings
+    assert waiting[-1][3] >= w.finder.search.min_bearings
     assert all(row[0] for row in trace[len(waiting) :]), "once found, used for good"
-    assert [i for i, _ in w.found] == [1] and w.found[0][1].combination == carried
+    assert [i for i, _ in w.finder.found] == [1] and w.finder.found[0][1].combination == carried
     # a single 3 deg bearing at 3 m is 0.16 m off sideways: dozens over the arc do better
     assert np.linalg.norm(w.tag_positions()[t] - sc.tags[0]) < 0.16
     assert w.locked(t) == carried
-    assert max(set(w.recent_jumps[t]), key=w.recent_jumps[t].count) == carried
+    assert max(set(w.jumps.recent[t]), key=w.jumps.recent[t].count) == carried
     used, _ = window_choices(w, t)
     assert len(used) > 10 and np.mean(used == carried) >= 0.9
     assert w.observable()[t]
@@ -225,7 +226,7 @@ def test_a_tag_whose_jumps_change_at_every_retune_is_found_but_never_locked():
     sc, w, trace = run_with_jumps(carried, seed=1)
     t = w.tag_ids.index(1)
     assert not trace[0][0] and trace[-1][0]
-    assert w.found[0][1].combination == -1, "no combination is shared by its bearings"
+    assert w.finder.found[0][1].combination == -1, "no combination is shared by its bearings"
     assert np.linalg.norm(w.tag_positions()[t] - sc.tags[0]) < 0.16
     assert w.locked(t) is None
     used, where = window_choices(w, t)
@@ -264,7 +265,7 @@ def test_a_tag_waiting_longer_than_the_search_history_is_still_searched():
             w.find_tags()  # searched while still: nothing settles
             assert not w.active[0]
     assert w.find_tags() > 0  # one search that sees the whole drive
-    assert w.active[0] and w.found[0][1].combination == 1
+    assert w.active[0] and w.finder.found[0][1].combination == 1
     assert np.linalg.norm(w.tag_positions()[0] - sc.tags[0]) < 0.16
 
 
@@ -289,16 +290,16 @@ def test_searches_go_a_few_steps_at_a_time_the_longest_waiting_first():
             jumps=jumps,
         )
     whole = copy.deepcopy(w)
-    assert whole.find_tags() > 4 and whole.found, "the uninterrupted searches find a tag"
+    assert whole.find_tags() > 4 and whole.finder.found, "the uninterrupted searches find a tag"
     one, two = w.tag_ids.index(1), w.tag_ids.index(2)
-    assert w.heard[one] > w.heard[two] >= w.search.min_bearings and not w.searched
+    assert w.finder.heard[one] > w.finder.heard[two] >= w.finder.search.min_bearings and not w.finder.searched
     assert w.find_tags(steps=2) == 2
-    assert w.searching is not None and w.searching.tag == one and list(w.searched) == [one]
+    assert w.finder.searching is not None and w.finder.searching.tag == one and list(w.finder.searched) == [one]
     calls = 1
     while w.find_tags(steps=2):
         calls += 1
-        assert w.searching is None or w.searching.tag in (one, two)
-    assert calls > 2 and sorted(w.searched) == sorted([one, two])
-    assert w.active == whole.active and [i for i, _ in w.found] == [i for i, _ in whole.found]
-    for (_, a), (_, b) in zip(w.found, whole.found, strict=True):
+        assert w.finder.searching is None or w.finder.searching.tag in (one, two)
+    assert calls > 2 and sorted(w.finder.searched) == sorted([one, two])
+    assert w.active == whole.active and [i for i, _ in w.finder.found] == [i for i, _ in whole.finder.found]
+    for (_, a), (_, b) in zip(w.finder.found, whole.finder.found, strict=True):
         np.testing.assert_array_equal(a.position, b.position)

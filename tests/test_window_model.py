@@ -20,17 +20,11 @@ import pytest
 from slam_scenes import INDEPENDENT_BURSTS, angles, estimate, scene
 
 from rover.formats.bag import BagReader
+from rover.operators.slam.layout import Shape, prior_indices, slot_columns, velocity_columns
 from rover.operators.slam.operator import Slam, SlamParams
 from rover.operators.slam.sliding_window import WindowSettings
 from rover.operators.slam.window_model import TOLERANCE, WindowModel
-from rover.operators.slam.window_program import (
-    Shape,
-    UpdateData,
-    WindowProgram,
-    prior_indices,
-    slot_columns,
-    velocity_columns,
-)
+from rover.operators.slam.window_program import UpdateData, WindowProgram
 from rover.testing import run_operator
 
 PREFIX_S = 30.0

@@ -260,7 +260,7 @@ class Slam(Operator):
             self.failures += 1
             log.debug("%s at %.3f s", result.failed, stamp / 1e9)
         newest = w.epochs[-1]
-        x, y = w.x[4 * (len(w.epochs) - 1) : 4 * (len(w.epochs) - 1) + 2]
+        x, y = w.x[w.shape.position(len(w.epochs) - 1)]
         yield Emit("pose", pose_message(newest.stamp_ns, float(x), float(y), newest.yaw), stamp)
         yield Emit("tags", self._tags(stamp), stamp)
         yield Emit(
@@ -285,7 +285,7 @@ class Slam(Operator):
             pose = pose_message(s, x, y, yaw)
             self.final_poses.append(pose)
             yield Emit("trajectory", pose, stamp)
-        for t, found in self.window.found[self.found_sent :]:
+        for t, found in self.window.finder.found[self.found_sent :]:
             held = (
                 f"jump combination {found.combination} all along" if found.combination >= 0 else "jumps at any retune"
             )
@@ -299,7 +299,7 @@ class Slam(Operator):
                 found.parallax_deg,
                 found.margin,
             )
-        self.found_sent = len(self.window.found)
+        self.found_sent = len(self.window.finder.found)
         for epoch in self.window.left:
             yield from self._bearings(epoch, stamp)
         self.window.left.clear()

@@ -27,15 +27,8 @@ from __future__ import annotations
 import cvxpy as cp
 import numpy as np
 
-from rover.operators.slam.window_program import (
-    Shape,
-    SolverFailed,
-    UpdateData,
-    edge_matrix,
-    prior_indices,
-    slot_columns,
-    velocity_columns,
-)
+from rover.operators.slam.layout import Shape, prior_indices, slot_columns, velocity_columns
+from rover.operators.slam.window_program import SolverFailed, UpdateData, edge_matrix
 
 TOLERANCE = 1e-9
 """Clarabel's gap and feasibility tolerances here: a specification is solved tighter than the hot path"""

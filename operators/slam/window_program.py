@@ -32,6 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from rover.errors import RoverError
+from rover.operators.slam.layout import Shape, prior_indices, slot_columns, velocity_columns
 
 
 class SolverFailed(RoverError):
@@ -59,34 +60,6 @@ class FixedPattern:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape)
 
 
-@dataclass(frozen=True)
-class Shape:
-    """What fixes the program's structure."""
-
-    epochs: int
-    slots: int
-    """AoA slots per epoch"""
-    tags: int
-    biases: int = 0
-    """states shared by the whole window, after the tags: the accelerometer biases, then the wheel
-    scale (0: none estimated)"""
-    scale: bool = False
-    """the last shared state is the wheel odometry's scale error, which every epoch's wheel term holds"""
-
-    @property
-    def states(self) -> int:
-        return 4 * self.epochs + 2 * self.tags + self.biases
-
-    @property
-    def bias_index(self) -> np.ndarray:
-        """The bias states' columns."""
-        return 4 * self.epochs + 2 * self.tags + np.arange(self.biases)
-
-    @property
-    def rows(self) -> int:
-        return self.epochs * self.slots
-
-
 L_PATTERN = (np.array([0, 0, 1, 1, 2, 2, 2, 3, 3, 3]), np.array([2, 6, 3, 7, 0, 2, 4, 1, 3, 5]))
 """Nonzeros of an edge's L (4x8) over [p_k, v_k, p_k+1, v_k+1] -> [r_v, r_p]."""
 
@@ -100,29 +73,6 @@ def edge_matrix(dt: np.ndarray) -> np.ndarray:
     lmat[:, 2:4, 0:2], lmat[:, 2:4, 4:6] = -eye, eye
     lmat[:, 2:4, 2:4] = -dt[:, None, None] * eye
     return lmat
-
-
-def prior_indices(shape: Shape) -> np.ndarray:
-    """The states the prior covers: the oldest epoch, every tag and the biases."""
-    return np.concatenate([np.arange(4), 4 * shape.epochs + np.arange(2 * shape.tags + shape.biases)])
-
-
-def velocity_columns(shape: Shape) -> np.ndarray:
-    """Per epoch, the states its wheel term covers (epochs, 2 or 3): its velocity, and the wheel
-    scale when the window estimates it."""
-    vel = 4 * np.arange(shape.epochs)[:, None] + np.array([2, 3])
-    if not shape.scale:
-        return vel
-    return np.concatenate([vel, np.full((shape.epochs, 1), shape.states - 1)], axis=1)
-
-
-def slot_columns(shape: Shape) -> np.ndarray:
-    """Per slot, the state columns of its row: the epoch's position, then every tag's position."""
-    epoch = np.repeat(np.arange(shape.epochs), shape.slots)
-    tags = 4 * shape.epochs + np.arange(2 * shape.tags)
-    return np.concatenate(
-        [4 * epoch[:, None] + np.arange(2)[None, :], np.broadcast_to(tags, (shape.rows, 2 * shape.tags))], axis=1
-    )
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,107 @@
+"""The window's side of the search for tags whose bearings carry several candidates: what it keeps
+of their bearings while they wait, which search is due, and the prior a found tag starts with.
+The search itself is `tag_search` (pure functions over bearings)."""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rover.operators.slam.epoch import padded_rows
+from rover.operators.slam.tag_search import Found, SearchSettings, search_steps
+
+SEARCH_HISTORY = 400
+"""bearings kept per tag waiting for the search (the latest)"""
+SEARCH_EVERY = 4
+"""new bearings of a waiting tag between two searches"""
+SEARCH_INFO_SCALE = 0.25
+"""share of the information of a found tag's earlier bearings kept as its prior (their robot
+positions are taken as known, which they are not quite)"""
+
+
+@dataclass
+class Search:
+    """A tag search under way: the tag slot, what it searches (bearing stamps, robot positions,
+    candidate stds and jumps, for putting the tag in use), and its remaining steps."""
+
+    tag: int
+    stamps: np.ndarray
+    robot: np.ndarray
+    stds: np.ndarray
+    jumps: np.ndarray
+    steps: Generator[None, None, Found | None]
+
+
+@dataclass
+class TagFinder:
+    """The tags waiting for the search, by tag slot, and what the search found."""
+
+    search: SearchSettings = field(default_factory=SearchSettings)
+    history: dict[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    """per tag slot waiting for the search: (stamp, world candidate angles, stds, jumps) of its bearings"""
+    heard: dict[int, int] = field(default_factory=dict)
+    """per tag slot: bearings with several candidates heard so far"""
+    searched: dict[int, int] = field(default_factory=dict)
+    """per tag slot: `heard` at its last search"""
+    final_xy: dict[int, np.ndarray] = field(default_factory=dict)
+    """robot position of each epoch that left the window, by stamp"""
+    found: list[tuple[int, Found]] = field(default_factory=list)
+    """(tag id, search result) of every tag the search localized, in order"""
+    searching: Search | None = field(default=None, repr=False)
+    """the tag search under way, if any"""
+
+    def hear(self, tag_slot: int, stamp_ns: int, angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray) -> None:
+        """A bearing with several candidates of a tag (world-frame angles, their raw stds, jumps)."""
+        kept = self.history.setdefault(tag_slot, [])
+        kept.append((stamp_ns, angles, stds, jumps))
+        self.heard[tag_slot] = self.heard.get(tag_slot, 0) + 1
+        del kept[:-SEARCH_HISTORY]
+
+    def next_search(self, window_xy: dict[int, np.ndarray], active: list[bool]) -> Search | None:
+        """The search of the tag waiting longest among those due (its history grew by SEARCH_EVERY
+        since its last one), started from the robot positions known now: those that left the window,
+        and `window_xy` (by stamp) for the others. None: none is due."""
+        due = [t for t in self.history if not active[t] and self.heard[t] >= self.searched.get(t, 0) + SEARCH_EVERY]
+        for t in sorted(due, key=lambda t: self.searched.get(t, 0) - self.heard[t]):
+            self.searched[t] = self.heard[t]
+            rows = [
+                (st, xy, row)
+                for st, *row in self.history[t]
+                if (xy := self.final_xy.get(st, window_xy.get(st))) is not None
+            ]
+            if len(rows) < self.search.min_bearings:
+                continue
+            width = max(len(row[0]) for _, _, row in rows)
+
+            def padded(i: int, pad: float, rows=rows, width=width) -> np.ndarray:
+                return padded_rows([row[i][None, :] for _, _, row in rows], width, pad)
+
+            robot = np.array([xy for _, xy, _ in rows])
+            angles, stds, jumps = padded(0, np.nan), padded(1, 1.0), padded(2, -1).astype(int)
+            stamps = np.array([st for st, _, _ in rows])
+            return Search(t, stamps, robot, stds, jumps, search_steps(robot, angles, stds, self.search, jumps))
+        return None
+
+    def settle(self, tag_id: int, run: Search, found: Found) -> None:
+        """The search found the tag: it waits no more."""
+        self.history.pop(run.tag, None)
+        self.found.append((tag_id, found))
+
+
+def found_tag_info(
+    run: Search, found: Found, oldest_stamp_ns: int, tag_prior_std_m: float, aoa_std_scale: float
+) -> np.ndarray:
+    """The 2x2 information a found tag starts with: the new-tag prior, plus the information of its
+    bearings that already left the window (before `oldest_stamp_ns`), their robot positions taken as
+    known, so weighed down by SEARCH_INFO_SCALE."""
+    inlier = found.choice >= 0
+    gone = inlier & (run.stamps < oldest_stamp_ns)
+    info = np.eye(2) * tag_prior_std_m**-2
+    if gone.any():
+        d = found.position[None, :] - run.robot[gone]
+        std = run.stds[gone, found.choice[gone]] * aoa_std_scale
+        jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (np.maximum(np.sum(d**2, axis=1), 1e-6) * std)[:, None]
+        info = info + SEARCH_INFO_SCALE * jac.T @ jac
+    return info
