@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rover.datasets.scenario import Trajectory
+from rover.geometry import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,9 @@ class Motion:
                 if length < 1e-9:
                     continue
                 wanted = math.atan2(dy, dx)
-                turn = (wanted - heading + math.pi) % (2 * math.pi) - math.pi
+                turn = float(wrap_angle(wanted - heading))
+                if turn >= math.pi:
+                    turn = -math.pi  # a half turn goes clockwise
                 if abs(turn) > 1e-6:
                     duration = 2 * abs(turn) / turn_rate
                     self.segments.append(Segment(t, duration, "turn", pos, heading, turn, turn_rate))
@@ -94,7 +97,7 @@ class Motion:
                 sign = math.copysign(1.0, seg.length_m)
                 out.yaw_rate[mask] = sign * seg.peak * (1 - np.cos(2 * np.pi * tau / d)) / 2
                 out.yaw[mask] += sign * seg.peak / 2 * (tau - d / (2 * np.pi) * np.sin(2 * np.pi * tau / d))
-        out.yaw = (out.yaw + np.pi) % (2 * np.pi) - np.pi
+        out.yaw = wrap_angle(out.yaw)
         return out
 
 

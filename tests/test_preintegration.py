@@ -11,9 +11,9 @@ from helpers import T0_NS, read_bag
 
 from rover.datasets.scenario import load_scenario
 from rover.datasets.simulate import simulate
-from rover.geometry import wrap_angle, yaw_from_quaternion
+from rover.geometry import rpy_matrix, wrap_angle, yaw_from_quaternion
 from rover.messages import deserialize, header, make
-from rover.operators.preintegration.operator import Preintegration, PreintegrationParams, rpy_matrix
+from rover.operators.preintegration.operator import Preintegration, PreintegrationParams
 
 EPOCH_NS = 400_000_000
 

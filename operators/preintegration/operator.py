@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from rover.formats.rig import RigInput
+from rover.geometry import exp_so3_batch, quaternion_from_matrix, rpy_matrix, skew_batch
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.pipeline.params import Checked, NonNegativeFloat, PositiveFloat
@@ -54,52 +55,6 @@ class PreintegrationParams(Checked):
     speed (centripetal force / yaw rate) is flagged a turn in place: a robot arcing at speed feels
     v * yaw rate sideways, one turning on the spot nothing (an IMU off the turning axis feels
     yaw rate^2 * lever arm, which makes such a turn look like an arc: missed, never invented)"""
-
-
-def skew_batch(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices of vectors (N, 3)."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
-
-
-def exp_so3_batch(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices of rotation vectors (N, 3), Rodrigues with a series near zero."""
-    angle = np.linalg.norm(w, axis=1)
-    k = skew_batch(w)
-    small = angle < 1e-8
-    safe = np.where(small, 1.0, angle)
-    s = np.where(small, 1.0 - angle**2 / 6, np.sin(safe) / safe)
-    c = np.where(small, 0.5 - angle**2 / 24, (1 - np.cos(safe)) / safe**2)
-    return np.eye(3)[None] + s[:, None, None] * k + c[:, None, None] * (k @ k)
-
-
-def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    cr, sr, cp, sp, cy, sy = (
-        math.cos(roll),
-        math.sin(roll),
-        math.cos(pitch),
-        math.sin(pitch),
-        math.cos(yaw),
-        math.sin(yaw),
-    )
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
-def quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of a rotation matrix."""
-    w = math.sqrt(max(0.0, 1 + r[0, 0] + r[1, 1] + r[2, 2])) / 2
-    x = math.copysign(math.sqrt(max(0.0, 1 + r[0, 0] - r[1, 1] - r[2, 2])) / 2, r[2, 1] - r[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1 - r[0, 0] + r[1, 1] - r[2, 2])) / 2, r[0, 2] - r[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1 - r[0, 0] - r[1, 1] + r[2, 2])) / 2, r[1, 0] - r[0, 1])
-    return x, y, z, w
 
 
 @dataclass
@@ -335,7 +290,7 @@ class Preintegration(Operator):
                 return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
             def quat(r: np.ndarray) -> Any:
-                return make("geometry_msgs/msg/Quaternion", **dict(zip("xyzw", quaternion(r), strict=True)))
+                return make("geometry_msgs/msg/Quaternion", **dict(zip("xyzw", quaternion_from_matrix(r), strict=True)))
 
             yield Emit(
                 "odometry",

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rover.operators.slam.factors import wrap
+from rover.geometry import wrap_angle
 
 SELECT_CAP_SIGMA = 3.0
 """in the max-mixture, a candidate further off than this many stds is as unlikely as any other"""
@@ -84,7 +84,7 @@ def choose(
     bearing's tag slot, candidates (rows, K; NaN-padded) with their window stds and combinations.
     Bearings of tags not in use keep what `kept` says."""
     predicted = np.arctan2(offset[:, 1], offset[:, 0])
-    r = wrap(predicted[:, None] - angles) / stds
+    r = wrap_angle(predicted[:, None] - angles) / stds
     prior = np.log(stds) - memory.log_weights(tag, jumps, len(active))  # a wide candidate, a rare combination
     cost = 0.5 * np.minimum(r**2, SELECT_CAP_SIGMA**2) + prior
     cost = np.where(np.isfinite(r), cost, np.inf)
@@ -105,7 +105,7 @@ def choose(
     finite = np.isfinite(likely)
     chance = np.exp(-(np.where(finite, likely, 0.0) - np.where(np.isfinite(low), low, 0.0))) * finite
     chance /= np.maximum(chance.sum(axis=1, keepdims=True), np.finfo(float).tiny)
-    apart = np.where(np.isfinite(angles), wrap(angles - angles[rows, choice][:, None]), 0.0)
+    apart = np.where(np.isfinite(angles), wrap_angle(angles - angles[rows, choice][:, None]), 0.0)
     doubt = np.sum(chance * apart**2, axis=1)
     use = np.array(active, bool)[tag]
     return Choice(np.where(use, choice, kept.choice), np.where(use, free, kept.free), np.where(use, doubt, kept.doubt))

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rover.geometry import rotation_2d, wrap_angle
 from rover.operators.slam.settings import WindowSettings
 from rover.operators.slam.window_program import edge_matrix
 
@@ -24,16 +25,11 @@ GN_HINGE_WEIGHT = 1e-6
 """the Gauss-Newton steps need no cheirality (the angle residual has it); a tiny weight keeps h unique"""
 
 
-def rotation(yaw: float) -> np.ndarray:
-    """The 2x2 rotation from the body's x/y to the world's at heading `yaw`."""
-    return np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-
-
 def bias_jacobian(yaw_start: float, yaw_end: float, dt: float) -> np.ndarray:
     """How an edge's [dv, dp] (x/y) move with [body-frame bias, world-frame bias] (4x4) for a robot
     turning steadily from `yaw_start` to `yaw_end` in `dt` (Simpson's rule over the turn: for
     odometry that does not say it itself)."""
-    r0, rm, r1 = rotation(yaw_start), rotation(0.5 * (yaw_start + yaw_end)), rotation(yaw_end)
+    r0, rm, r1 = rotation_2d(yaw_start), rotation_2d(0.5 * (yaw_start + yaw_end)), rotation_2d(yaw_end)
     body = np.concatenate([dt / 6 * (r0 + 4 * rm + r1), dt**2 / 6 * (r0 + 2 * rm)])
     world = np.concatenate([dt * np.eye(2), 0.5 * dt**2 * np.eye(2)])
     return np.concatenate([body, world], axis=1)
@@ -59,10 +55,6 @@ class Edge:
         self.block = lmat.T @ np.linalg.solve(self.covariance, lmat)
 
 
-def wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi
-
-
 def huber_cost(r: np.ndarray, m: float) -> np.ndarray:
     a = np.abs(r)
     return np.where(a <= m, a**2, 2 * m * a - m**2)
@@ -81,7 +73,7 @@ def angle_residuals(
     range2 = np.maximum(np.sum(delta**2, axis=1), min_range_m**2)
     predicted = np.arctan2(delta[:, 1], delta[:, 0])
     measured = np.arctan2(bearing[:, 1], bearing[:, 0])
-    residual = wrap(predicted - measured) / std
+    residual = wrap_angle(predicted - measured) / std
     return residual, np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (range2 * std)[:, None]
 
 
@@ -134,7 +126,7 @@ def bias_prior(s: WindowSettings, yaw: float, levelled_std_m_s2: float) -> np.nd
     cancelling there (what levelling removed is exactly what the IMU felt at rest: c + R b = 0)."""
     if levelled_std_m_s2 <= 0:
         return np.eye(4) / s.accel_bias_std_m_s2**2
-    both = np.concatenate([rotation(yaw), np.eye(2)], axis=1)  # c + R b
+    both = np.concatenate([rotation_2d(yaw), np.eye(2)], axis=1)  # c + R b
     info = both.T @ both / levelled_std_m_s2**2
     info[0:2, 0:2] += np.eye(2) / s.accel_bias_std_m_s2**2
     return info
