@@ -58,7 +58,8 @@ def exp_so3_batch(w: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, angle)
     s = np.where(small, 1.0 - angle**2 / 6, np.sin(safe) / safe)
     c = np.where(small, 0.5 - angle**2 / 24, (1 - np.cos(safe)) / safe**2)
-    return np.eye(3)[None] + s[:, None, None] * k + c[:, None, None] * (k @ k)
+    rotations: np.ndarray = np.eye(3)[None] + s[:, None, None] * k + c[:, None, None] * (k @ k)
+    return rotations
 
 
 def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
