@@ -29,11 +29,21 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from rover.evaluation.metrics import evaluate, render
-    from rover.formats.run_dir import load_run, load_truth, read_run_description
+    from rover.formats.run_dir import FAILED_RUN_FILE, load_run, load_truth, read_run_description
 
     description = read_run_description(args.run)
+    failed = read_run_description(args.run, FAILED_RUN_FILE)
+    if description is None and failed is not None:
+        description = failed
     if description is not None and description.status == "failed":
         raise BadInput(f"{args.run}: the run failed, nothing to evaluate: {description.reason}")
+    if failed is not None and description is not failed:  # a run with results removes failed-run.json
+        logging.getLogger("rover.eval").warning(
+            "%s: the last run into this folder failed (%s: %s): these are the results of the run before it",
+            args.run,
+            FAILED_RUN_FILE,
+            failed.reason,
+        )
     if description is not None and description.status in ("interrupted", "partial"):
         logging.getLogger("rover.eval").warning(
             "%s: the run is %s (%s): its results cover part of the dataset",

@@ -3,8 +3,9 @@
 Inputs take any name and any type; each becomes a topic (`/<port>`, or as mapped by
 `topics`; a port mapped to "" is not recorded, as the pipeline does with wall-clock timings
 unless `--timing-topic` names a topic). Log time is the message's event time, so the same
-input gives the same bytes. The file only appears once complete: a run first removes the one
-an earlier run left, and a failed run leaves none.
+input gives the same bytes. The file is written into the run's staging folder and appears only
+once the run ended with results, replacing an earlier run's (rover.formats.output_folder); a failed
+run leaves the earlier one as it was.
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from rover.errors import BadInput, OutputFailed
-from rover.formats.atomic_file import remove_outputs
 from rover.formats.bag import BagWriter
+from rover.formats.output_folder import OutputFolder, claim, release
 from rover.messages import ANY
 from rover.operator import COMPLETE, In, Operator, RunOutcome
 
@@ -39,14 +40,18 @@ class Recorder(Operator):
         self.topics = self.params.topics
         self.bag: BagWriter | None = None
         self.finished = False
+        self.folder: OutputFolder | None = None
 
     def start(self) -> None:
-        remove_outputs([self.path])
+        """Take the output folder for this run (BadInput when another run has it)."""
+        self.folder = claim(self.path.parent)
 
     def _writer(self) -> BagWriter:
         if self.bag is None:
+            if self.folder is None:
+                raise OutputFailed(f"{self.path}: the recorder was not started")
             try:
-                self.bag = BagWriter(self.path)
+                self.bag = BagWriter(self.folder.stage(self.path.name))
             except BadInput as exc:
                 raise OutputFailed(str(exc)) from None
         return self.bag
@@ -73,6 +78,15 @@ class Recorder(Operator):
         self.finished = True
 
     def report(self, outcome: RunOutcome) -> None:
-        """A run that failed after this file was finished (another output failed) leaves it out too."""
-        if not outcome.keeps_outputs and self.finished:
-            self.path.unlink(missing_ok=True)
+        """The finished file renamed into place when the run ended with results; dropped when it
+        failed (after this file was finished too: another output failed)."""
+        folder, self.folder = self.folder, None
+        if folder is None:
+            return
+        try:
+            if outcome.keeps_outputs and self.finished:
+                folder.commit([self.path.name])
+            else:
+                folder.discard([self.path.name])
+        finally:
+            release(folder)

@@ -8,8 +8,11 @@ of results.mcap, so the same input gives the same bytes there). When `dataset` h
 `metrics.json` and the figures follow, computed as `rover eval` does; after an interrupt only when
 they fit in the time left (`rover eval OUT --figures` writes the figures later).
 
-Files appear only once complete (written aside, renamed). A run first removes what an earlier run
-left in the folder, and a failed run leaves only `run.json`, which says how every run ended:
+The run takes the folder for itself and writes into a staging folder in it; its files are renamed
+into place only when the run ended with results (rover.formats.output_folder), replacing an earlier
+run's and removing those of an earlier run's files this one did not write. A failed run leaves the
+earlier results as they were and writes `failed-run.json` beside them. `run.json` (or
+`failed-run.json`) says how the run ended:
 its `status` (complete, partial, interrupted, failed), the `reason`, the hosts `lost` during a
 partial run (each with its reason and the time it was noticed), what each operator received,
 sent and dropped, and where each operator of this process spent its time (`profile`: decoding,
@@ -32,8 +35,9 @@ import numpy as np
 from rover.errors import BadInput, OutputFailed
 from rover.evaluation.figures import FIGURE_FILES, write_figures
 from rover.evaluation.metrics import Truth, evaluate, poses_of_messages
-from rover.formats.atomic_file import remove_outputs, write_aside
-from rover.formats.run_dir import RUN_FILE, load_truth, record, tag_entry
+from rover.formats.atomic_file import write_aside
+from rover.formats.output_folder import OutputFolder, claim, refuse_input, release
+from rover.formats.run_dir import FAILED_RUN_FILE, RUN_FILE, load_truth, record, tag_entry
 from rover.messages import stamp_ns
 from rover.operator import COMPLETE, In, Operator, RunOutcome
 
@@ -70,7 +74,8 @@ TIMING_FILE = "timing.json"
 METRICS_FILE = "metrics.json"
 ESTIMATE_FILES = ("trajectory.tum", "trajectory_live.tum", "tags.csv")
 RUN_FILES = (*ESTIMATE_FILES, TIMING_FILE, METRICS_FILE, *FIGURE_FILES, RUN_FILE)
-"""Everything this operator may write: what a new run removes first."""
+"""Everything this operator may write: what a new run's results replace (an earlier run's file this
+run did not write is removed with them)."""
 METRICS_MIN_S = 0.3
 """After an interrupt, metrics are computed only with this much of the time budget left (they take
 about 0.1 s: the truth is read before the run). Figures are never drawn after an interrupt:
@@ -122,18 +127,21 @@ class RunOutputs(Operator):
         self.history: list[tuple[int, int, float, float, bool, float, float, float, float]] = []
         self.aoa: list[tuple[int, int, float, float]] = []
         self.timing: dict[str, list[float]] = {}
-        self.written: list[Path] = []
+        self.written: list[str] = []
+        """the files this run wrote, by name (staged until the run's end)"""
+        self.folder: OutputFolder | None = None
         self.notes: list[str] = []
         self.out = Path(self.params.out)
         self.truth: Truth | None = None
         self.unresolved = 0
 
     def start(self) -> None:
-        """Remove an earlier run's files; read the dataset's ground truth now, so that after an
-        interrupt the metrics fit in the time budget."""
-        if self.out.exists() and not self.out.is_dir():
-            raise BadInput(f"{self.out}: not a folder (the output of a run is a folder)")
-        remove_outputs(self.out / name for name in RUN_FILES)
+        """Take the output folder for this run (refused when it holds the dataset, or another run has
+        it); read the dataset's ground truth now, so that after an interrupt the metrics fit in the
+        time budget."""
+        if self.params.dataset:
+            refuse_input(self.out, [self.params.dataset])
+        self.folder = claim(self.out)
         if self.params.dataset:
             self.truth = load_truth(Path(self.params.dataset))
             if self.truth is None:
@@ -194,9 +202,8 @@ class RunOutputs(Operator):
 
     def close(self, outcome: RunOutcome = COMPLETE) -> None:
         """The estimates and timings; then metrics and figures, when there is truth and time."""
-        if not outcome.keeps_outputs:
+        if not outcome.keeps_outputs or self.folder is None:
             return
-        self._make_folder()
         self._write("trajectory.tum", "".join(tum_line(m) for m in sorted(self.final, key=stamp_ns)))
         self._write("trajectory_live.tum", "".join(tum_line(m) for m in sorted(self.live, key=stamp_ns)))
         self._write("tags.csv", self.tags_csv())
@@ -212,22 +219,35 @@ class RunOutputs(Operator):
             self._note("no metrics: no epoch left the SLAM window (no final pose)")
 
     def report(self, outcome: RunOutcome) -> None:
-        """run.json, whatever happened; a failed run's other files are removed."""
-        if not outcome.keeps_outputs:
-            for path in self.written:
-                path.unlink(missing_ok=True)
-            self.written = []
-        if self.out.exists() and not self.out.is_dir():
-            return  # a file where the folder should be: the run failed saying so, nowhere to report
-        self._make_folder()
+        """A run with results: its files and run.json renamed into place. A failed run (or one whose
+        files cannot be put in place): its files dropped, the earlier results kept, failed-run.json
+        beside them. Nothing when the folder was never taken (another run's, or not writable: the
+        run failed saying so)."""
+        folder, self.folder = self.folder, None
+        if folder is None:
+            return
         dataset = str(Path(self.params.dataset).resolve()) if self.params.dataset else ""
-        write_atomic(self.out / RUN_FILE, json.dumps(self.run_description(dataset, outcome), indent=2) + "\n")
-
-    def _make_folder(self) -> None:
+        failure: OutputFailed | None = None
         try:
-            self.out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputFailed(f"{self.out}: cannot create the output folder: {exc.strerror or exc}") from None
+            if outcome.keeps_outputs:
+                try:
+                    write_atomic(
+                        folder.stage(RUN_FILE), json.dumps(self.run_description(dataset, outcome), indent=2) + "\n"
+                    )
+                    folder.commit([*self.written, RUN_FILE], stale=[*RUN_FILES, FAILED_RUN_FILE])
+                    return
+                except OutputFailed as exc:
+                    failure = exc
+                    outcome = dataclasses.replace(outcome, status="failed", reason=str(exc))
+            folder.discard([*self.written, RUN_FILE])
+            self.written = []
+            write_atomic(
+                folder.path / FAILED_RUN_FILE, json.dumps(self.run_description(dataset, outcome), indent=2) + "\n"
+            )
+            if failure is not None:
+                raise failure
+        finally:
+            release(folder)
 
     def _note(self, text: str) -> None:
         """Something the user should know about this run's files: logged, and kept in run.json."""
@@ -235,8 +255,9 @@ class RunOutputs(Operator):
         self.notes.append(text)
 
     def _write(self, name: str, text: str) -> None:
-        write_atomic(self.out / name, text)
-        self.written.append(self.out / name)
+        assert self.folder is not None  # close() writes only with the folder taken
+        write_atomic(self.folder.stage(name), text)
+        self.written.append(name)
 
     def timing_summary(self) -> dict[str, dict[str, float | int]]:
         """Per timed stage: how many, and the median, 90th percentile, largest and total wall-clock seconds."""
@@ -267,7 +288,7 @@ class RunOutputs(Operator):
             "dataset": dataset,
             "pipeline": pipeline,
             "command_line": dict(self.context.command_line),
-            "files": sorted(p.name for p in self.written),
+            "files": sorted(self.written),
             "notes": self.notes,
             "received": sum(sum(c["received"].values()) for c in counts.values()),
             "dropped": sum(sum(c["dropped"].values()) for c in counts.values()),
@@ -308,8 +329,9 @@ class RunOutputs(Operator):
         if outcome.status == "interrupted":
             self._note(f"figures skipped after the interrupt: run `rover eval {self.out} --figures`")
             return
+        assert self.folder is not None  # close() runs this only with the folder taken
         try:
-            self.written += write_figures(run, truth, self.out)
+            self.written += [p.name for p in write_figures(run, truth, self.folder.staging)]
         except OutputFailed:
-            remove_outputs(self.out / name for name in FIGURE_FILES)
+            self.folder.discard(FIGURE_FILES)
             raise

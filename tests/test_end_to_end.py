@@ -19,6 +19,7 @@ from helpers import popen_rover, read_bag, reference_data, run_rover, strip_trut
 from rover.cli.demo import simulator_version
 from rover.drivers.run_outputs import TAG_COLUMNS
 from rover.formats.bag import BagWriter, read_metadata
+from rover.formats.output_folder import STAGING_PREFIX
 from rover.geometry import wrap_angle
 from rover.messages import deserialize
 
@@ -146,7 +147,7 @@ def test_an_interrupted_run_finishes_its_estimates_within_2_s(tmp_path, simulate
     sig = signal.SIGINT  # SIGTERM takes the same path (tests/test_runtime.py stops a live run with each)
     out = tmp_path / "out"
     proc = popen_rover("run", "--dataset", str(simulated("paper", 1)), "--output", str(out))
-    wait_for_file(out / ".results.mcap.partial", proc, FIRST_CHUNK_BYTES)
+    wait_for_file(out / f"{STAGING_PREFIX}{proc.pid}" / ".results.mcap.partial", proc, FIRST_CHUNK_BYTES)
     sent = time.monotonic()
     proc.send_signal(sig)
     _out, err = proc.communicate(timeout=30)
@@ -191,10 +192,10 @@ def corrupt_middle_chunk(source: Path, target: Path) -> None:
 
 
 @pytest.mark.parametrize("truth", [True, False], ids=["truth read at the start", "replay in mid-run"])
-def test_a_run_failing_on_a_corrupt_chunk_replaces_the_earlier_runs_results(tmp_path, simulated, truth):
+def test_a_run_failing_on_a_corrupt_chunk_keeps_the_earlier_runs_results(tmp_path, simulated, truth):
     """Status 2 and one line naming the dataset, whether the corrupt chunk is met while reading
-    the ground truth before the run or by the replay in mid-run; the folder keeps no result of the
-    earlier run and its run.json says this run failed and why, so `rover eval` reads nothing stale."""
+    the ground truth before the run or by the replay in mid-run; the folder keeps the earlier run's
+    results as they were, and failed-run.json beside them says this run failed and why."""
     dataset = simulated("paper", 1)
     if not truth:
         strip_truth(dataset, tmp_path / "blind.mcap")
@@ -203,21 +204,21 @@ def test_a_run_failing_on_a_corrupt_chunk_replaces_the_earlier_runs_results(tmp_
     corrupt_middle_chunk(dataset, corrupt)
     out = tmp_path / "out"
     out.mkdir()
-    for name in ("trajectory.tum", "tags.csv", "metrics.json", "results.mcap"):
-        (out / name).write_text("from an earlier run")
-    (out / "run.json").write_text('{"status": "complete", "dataset": "/earlier/run.mcap"}')
+    earlier = {name: f"from an earlier run: {name}" for name in ("trajectory.tum", "tags.csv", "metrics.json")}
+    earlier["results.mcap"] = "an earlier run's recording"
+    earlier["run.json"] = '{"status": "complete", "dataset": "/earlier/run.mcap"}'
+    for name, text in earlier.items():
+        (out / name).write_text(text)
     proc = run_rover("run", "--dataset", str(corrupt), "--output", str(out), timeout=600)
     assert proc.returncode == 2, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if "WARNING" not in line]
     assert len(errors) == 1 and errors[0].startswith(f"rover: error: {corrupt}: "), proc.stderr
     assert "Traceback" not in proc.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["run.json"]
-    run = json.loads((out / "run.json").read_text())
+    assert sorted(p.name for p in out.iterdir()) == sorted([*earlier, "failed-run.json"])
+    assert {name: (out / name).read_text() for name in earlier} == earlier
+    run = json.loads((out / "failed-run.json").read_text())
     assert run["status"] == "failed" and run["reason"] == errors[0].removeprefix("rover: error: ")
     assert run["dataset"] == str(corrupt.resolve())
-    stale = run_rover("eval", str(out))
-    assert stale.returncode == 2
-    assert stale.stderr.splitlines() == [f"rover: error: {out}: the run failed, nothing to evaluate: {run['reason']}"]
 
 
 def test_sample_recording_convert_run_eval(tmp_path):

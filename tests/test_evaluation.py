@@ -189,6 +189,22 @@ def test_rover_eval_bad_input(tmp_path):
     assert proc.returncode == 2 and "pass --truth" in proc.stderr
 
 
+def test_eval_after_a_failed_run_says_the_results_are_the_earlier_runs(tmp_path):
+    run, reference, tags = make_run(tmp_path)
+    (run / "run.json").write_text(json.dumps({"status": "complete", "reason": "", "dataset": str(reference)}))
+    (run / "failed-run.json").write_text(json.dumps({"status": "failed", "reason": "operator 'slam' failed: boom"}))
+    proc = run_rover("eval", str(run), "--truth", str(reference), "--tags", str(tags))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"rover: WARNING: {run}: the last run into this folder failed (failed-run.json: operator 'slam' failed: "
+        "boom): these are the results of the run before it"
+    ]
+    (run / "run.json").unlink()
+    proc = run_rover("eval", str(run), "--truth", str(reference))
+    assert proc.returncode == 2
+    assert proc.stderr == f"rover: error: {run}: the run failed, nothing to evaluate: operator 'slam' failed: boom\n"
+
+
 def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     """Run the CLI in-process: status 2 and exactly one line on stderr, which is returned."""
     assert main(argv) == 2

@@ -9,7 +9,7 @@ from rosbags.highlevel import AnyReader
 
 from rover.drivers.recorder import Recorder, RecorderParams
 from rover.messages import Raw, header, make, serialize
-from rover.operator import RunOutcome
+from rover.operator import COMPLETE, RunOutcome
 
 
 def imu(i: int) -> Raw:
@@ -18,11 +18,13 @@ def imu(i: int) -> Raw:
 
 def test_writes_a_ros2_bag_other_tools_read(tmp_path):
     rec = Recorder(RecorderParams(out=str(tmp_path), topics={"imu": "/imu/data"}))
+    rec.start()
     for i in range(5):
         rec.on_input("imu", imu(i), T0_NS + i)
     rec.on_input("tags", Raw("std_msgs/msg/String", serialize(make("std_msgs/msg/String", data="x"))), T0_NS + 9)
-    assert not (tmp_path / "results.mcap").exists()
     rec.close()
+    assert not (tmp_path / "results.mcap").exists(), "staged until the run's end"
+    rec.report(COMPLETE)
     path = tmp_path / "results.mcap"
     assert [(t, s) for t, s, _ in read_bag(path)] == [("/imu/data", T0_NS + i) for i in range(5)] + [
         ("/tags", T0_NS + 9)
@@ -32,12 +34,25 @@ def test_writes_a_ros2_bag_other_tools_read(tmp_path):
         assert topics == {"/imu/data": "sensor_msgs/msg/Imu", "/tags": "std_msgs/msg/String"}
         msgs: list[Any] = [reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages()]
         assert msgs[-1].data == "x"
+    assert [p.name for p in tmp_path.iterdir()] == ["results.mcap"], "no lock, no staging folder left"
 
 
-def test_a_failed_run_leaves_nothing(tmp_path):
+def test_a_failed_run_leaves_the_earlier_file_as_it_was(tmp_path):
+    (tmp_path / "results.mcap").write_bytes(b"an earlier run's file")
     rec = Recorder(RecorderParams(out=str(tmp_path)))
+    rec.start()
     rec.on_input("imu", imu(0), T0_NS)
     rec.close(RunOutcome("failed", "boom"))
+    rec.report(RunOutcome("failed", "boom"))
+    assert [p.name for p in tmp_path.iterdir()] == ["results.mcap"]
+    assert (tmp_path / "results.mcap").read_bytes() == b"an earlier run's file"
+
+
+def test_a_failed_run_into_a_new_folder_leaves_no_folder(tmp_path):
+    rec = Recorder(RecorderParams(out=str(tmp_path / "new")))
+    rec.start()
+    rec.close(RunOutcome("failed", "boom"))
+    rec.report(RunOutcome("failed", "boom"))
     assert list(tmp_path.iterdir()) == []
 
 
@@ -45,21 +60,25 @@ def test_a_run_replaces_the_earlier_file_and_an_empty_run_writes_an_empty_bag(tm
     (tmp_path / "results.mcap").write_bytes(b"an earlier run's file")
     rec = Recorder(RecorderParams(out=str(tmp_path)))
     rec.start()
-    assert list(tmp_path.iterdir()) == []
+    assert (tmp_path / "results.mcap").read_bytes() == b"an earlier run's file", "nothing removed at the start"
     rec.close()
+    rec.report(COMPLETE)
     assert read_bag(tmp_path / "results.mcap") == []
 
 
 def test_a_port_mapped_to_no_topic_is_not_recorded(tmp_path):
     rec = Recorder(RecorderParams(out=str(tmp_path), topics={"timing": ""}))
+    rec.start()
     rec.on_input("timing", imu(0), T0_NS)
     rec.on_input("imu", imu(1), T0_NS + 1)
     rec.close()
+    rec.report(COMPLETE)
     assert [t for t, _s, _ in read_bag(tmp_path / "results.mcap")] == ["/imu"]
 
 
-def test_a_run_that_fails_after_the_file_was_finished_removes_it(tmp_path):
+def test_a_run_that_fails_after_the_file_was_finished_leaves_it_out(tmp_path):
     rec = Recorder(RecorderParams(out=str(tmp_path)))
+    rec.start()
     rec.on_input("imu", imu(0), T0_NS)
     rec.close()
     rec.report(RunOutcome("failed", "another output failed"))

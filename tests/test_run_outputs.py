@@ -11,8 +11,9 @@ from helpers import T0_NS
 
 from rover.drivers.run_outputs import RUN_FILES, RunOutputs, RunOutputsParams
 from rover.errors import OutputFailed
+from rover.formats.run_dir import FAILED_RUN_FILE
 from rover.messages import header, make
-from rover.operator import OperatorCounts, RunOutcome
+from rover.operator import COMPLETE, OperatorCounts, RunOutcome
 from rover.testing import run_operator
 
 
@@ -26,6 +27,7 @@ def timing(i: int, wall_s: float):
 
 def outputs(tmp_path) -> RunOutputs:
     op = RunOutputs(RunOutputsParams(out=str(tmp_path / "out")))
+    op.start()
     run_operator(
         op,
         {
@@ -40,7 +42,6 @@ def outputs(tmp_path) -> RunOutputs:
 
 def test_a_complete_run_writes_its_files_and_run_json_counts_what_was_processed(tmp_path):
     op = outputs(tmp_path)
-    op.start()
     op.close()
     counts = {"slam": OperatorCounts({"aoa": 40}, {"pose": 4}, {"AoAs without an IMU epoch": 2})}
     op.report(RunOutcome("complete", "", counts))
@@ -56,28 +57,52 @@ def test_a_complete_run_writes_its_files_and_run_json_counts_what_was_processed(
     assert run["operators"]["slam"]["dropped"] == {"AoAs without an IMU epoch": 2}
 
 
-def test_a_new_run_first_removes_what_an_earlier_run_left(tmp_path):
+def test_a_run_replaces_what_an_earlier_run_left_only_once_it_has_its_results(tmp_path):
+    """Nothing goes at the start; at the end this run's files replace the earlier run's, those it did not
+    write (metrics, figures of a run with truth) go with them, and the user's own file stays."""
     out = tmp_path / "out"
     out.mkdir()
     for name in RUN_FILES:
         (out / name).write_text("from the earlier run")
-    (out / ".trajectory.tum.partial").write_text("half")
+    (out / FAILED_RUN_FILE).write_text("{}")
     (out / "notes.txt").write_text("the user's own file")
-    RunOutputs(RunOutputsParams(out=str(out))).start()
-    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    op = outputs(tmp_path)
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == sorted(
+        [*RUN_FILES, FAILED_RUN_FILE, "notes.txt"]
+    )
+    op.close()
+    op.report(COMPLETE)
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["notes.txt", "run.json", "tags.csv", "timing.json", "trajectory.tum", "trajectory_live.tum"]
+    )
+    assert (out / "trajectory.tum").read_text() != "from the earlier run"
 
 
-def test_an_output_that_cannot_be_written_fails_and_the_failed_run_keeps_only_run_json(tmp_path):
+def test_a_failed_run_keeps_the_earlier_results_and_says_why_beside_them(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in RUN_FILES:
+        (out / name).write_text("from the earlier run")
+    op = outputs(tmp_path)
+    op.close(RunOutcome("failed", "operator 'slam' failed: boom"))
+    op.report(RunOutcome("failed", "operator 'slam' failed: boom"))
+    assert sorted(p.name for p in out.iterdir()) == sorted([*RUN_FILES, FAILED_RUN_FILE])
+    assert all((out / name).read_text() == "from the earlier run" for name in RUN_FILES)
+    failed = json.loads((out / FAILED_RUN_FILE).read_text())
+    assert failed["status"] == "failed" and failed["reason"] == "operator 'slam' failed: boom" and failed["files"] == []
+
+
+def test_files_that_cannot_be_put_in_place_fail_the_run_and_none_goes_in(tmp_path):
     op = outputs(tmp_path)
     out = tmp_path / "out"
     (out / "tags.csv").mkdir(parents=True)  # a folder in the way of the third file
     (out / "tags.csv" / "x").write_text("")
-    with pytest.raises(OutputFailed, match=r"tags\.csv: cannot write: (Is a directory|Directory not empty)"):
-        op.close()
-    op.report(RunOutcome("failed", "operator 'outputs': tags.csv: cannot write"))
-    assert sorted(p.name for p in out.iterdir()) == ["run.json", "tags.csv"]  # the folder is the user's
-    run = json.loads((out / "run.json").read_text())
-    assert run["status"] == "failed" and run["files"] == []
+    op.close()
+    with pytest.raises(OutputFailed, match=r"tags\.csv: cannot write: a folder is in the way"):
+        op.report(COMPLETE)
+    assert sorted(p.name for p in out.iterdir()) == [FAILED_RUN_FILE, "tags.csv"]  # the folder is the user's
+    failed = json.loads((out / FAILED_RUN_FILE).read_text())
+    assert failed["status"] == "failed" and "a folder is in the way" in failed["reason"]
 
 
 @pytest.mark.slow

@@ -18,6 +18,8 @@ from rover.geometry import yaw_from_quaternion
 from rover.operator import RunStatus
 
 RUN_FILE = "run.json"
+FAILED_RUN_FILE = "failed-run.json"
+"""how the last run into the folder ended when it failed (the folder keeps the results of the one before)"""
 """names the dataset a run read, so `rover eval` finds its truth"""
 
 
@@ -147,9 +149,9 @@ class RunDescription:
     reason: str
 
 
-def read_run_description(run_dir: str | Path) -> RunDescription | None:
-    """The run.json of a run folder; None when there is none."""
-    path = Path(run_dir) / RUN_FILE
+def read_run_description(run_dir: str | Path, name: str = RUN_FILE) -> RunDescription | None:
+    """The run.json (or failed-run.json) of a run folder; None when there is none."""
+    path = Path(run_dir) / name
     if not path.exists():
         return None
     try:
