@@ -26,6 +26,7 @@ def run(args: argparse.Namespace) -> int:
     import shlex
 
     from rover.datasets.scenario import load_scenario
+    from rover.datasets.scenario_size import check_size
     from rover.datasets.simulate import simulate
     from rover.formats.bag import check_output
 
@@ -39,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.scenario).exists() and Path(args.scenario).resolve() == Path(args.output).resolve():
         raise BadInput(f"{args.output}: is also the scenario file; simulating onto it would destroy it")
     scenario = load_scenario(args.scenario, overrides)
+    sets = "".join(f" --set {key}={value}" for key, value in overrides.items())
+    check_size(scenario, f"scenario {args.scenario}{sets}")
     report = simulate(scenario, args.seed, args.output, shlex.join(["rover", *sys.argv[1:]]), force=args.force)
     per_tag = ", ".join(f"tag {t}: {n:,}" for t, n in report.packets_per_tag.items())
     print(f"simulated {report.duration_s:.1f} s, {report.path_length_m:.2f} m of path; CSI packets {per_tag}")

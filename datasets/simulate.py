@@ -17,6 +17,7 @@ from rover.datasets.imu_model import imu_samples, odometry_samples
 from rover.datasets.motion import Motion
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import Receiver, Scenario
+from rover.datasets.scenario_size import TRUTH_RATE_HZ, check_size
 from rover.errors import BadInput
 from rover.formats import dataset
 from rover.formats.bag import BagWriter, check_output
@@ -27,7 +28,6 @@ from rover.messages import header, make
 
 T0_NS = 1_700_000_000_000_000_000
 """Simulated clock origin (2023-11-14), so stamps look like a real recording's."""
-TRUTH_RATE_HZ = 100.0
 NOISE_HEADER_DB = -127
 NOISE_FLOOR_DB = -92
 RATE_N_FLAGS = 0x4101
@@ -142,6 +142,7 @@ def simulate(
 ) -> SimReport:
     """Simulate `scenario` with `seed` into the dataset `output`, which is checked before any
     work and appears only when complete."""
+    check_size(scenario, f"scenario {scenario.name}")  # before the output is touched or anything allocated
     output = check_output(output, force=force)
     rng = np.random.default_rng(seed)
     rx = scenario.receiver

@@ -13,6 +13,7 @@ from helpers import popen_rover, read_bag, run_rover, stop_while_writing
 
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
 from rover.datasets.scenario import Receiver, load_scenario
+from rover.datasets.scenario_size import MAX_MESSAGES, scenario_size
 from rover.datasets.simulate import antenna_positions, chain_jumps, simulate
 from rover.errors import BadInput, SpecError
 from rover.formats.bag import read_metadata
@@ -196,6 +197,30 @@ def test_simulating_onto_the_scenario_file_is_refused(tmp_path, capsys):
         f"rover: error: {scenario}: is also the scenario file; simulating onto it would destroy it"
     ]
     assert scenario.read_text() == "room: {size_m: [6.0, 4.0]}\n"
+
+
+def test_the_size_worked_out_before_simulating_bounds_the_size_simulated(short_run):
+    """Duration exactly; the messages bounded from above (every tag heard all the time, the sweep's
+    windows counted) and not by much more than half."""
+    _out, report = short_run
+    size = scenario_size(load_scenario("paper", SHORT))
+    assert size.duration_s == pytest.approx(report.duration_s, abs=1e-9)
+    assert sum(report.counts.values()) <= size.messages <= 1.5 * sum(report.counts.values())
+
+
+@pytest.mark.parametrize(
+    "setting",
+    ["trajectory.laps=100000", "trajectory.laps=1000000000000", "receiver.dwell_s=0.0000001", "imu.rate_hz=20000000"],
+)
+def test_a_scenario_too_big_for_memory_is_refused_before_anything_is_allocated(tmp_path, capsys, setting):
+    from rover.cli.app import main
+
+    out = tmp_path / "big.mcap"
+    assert main(["simulate", "-o", str(out), "--set", setting]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"rover: error: scenario paper --set {setting}: the scenario would"), err
+    assert f"at most {MAX_MESSAGES:,}" in err[0]
+    assert list(tmp_path.iterdir()) == []
 
 
 # -- the chains' phase jumps (issue 14) -------------------------------------------------------------
