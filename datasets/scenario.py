@@ -61,6 +61,10 @@ class Receiver:
     jumps_per_packet: Fraction = 0.0
     """chance that a packet's chains jump by a random multiple for that packet only (2.4 GHz, CSI
     Tool issue #6)"""
+    steps_per_minute: NonNegativeFloat = 0.0
+    """persistent jumps at random moments: at this rate (a Poisson process in time) one chain, drawn
+    at random, steps by one jump step (pi at 5 GHz; up or down) on every channel and stays so until
+    its next step ("the phase difference changes suddenly": CSI Tool issues #23, #295 and #113)"""
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,8 @@ PERMUTATIONS = (0b100100, 0b011000, 0b001001, 0b010010, 0b000110, 0b100001)
 """antenna_sel values of the six permutations; the NIC usually reports the identity."""
 JUMP_STREAM = 14
 """the phase jumps draw from their own random stream, so turning them on changes nothing else"""
+STEP_STREAM = 15
+"""the persistent steps draw from a stream of their own too"""
 JUMP_DRAWS = 4
 """jumps are drawn as 0..3 steps: at 5 GHz (step pi) that is 0 or pi, each equally likely"""
 
@@ -98,10 +100,39 @@ class ChainJumps:
     phase_rad: np.ndarray
     run_steps: dict[int, list[int]]
     retunes_redrawn: int
+    steps: list[tuple[float, int, int]] = field(default_factory=list)
+    """the persistent steps: (time s from the start, chain, +1 or -1 jump step)"""
 
 
-def chain_jumps(rx: Receiver, seed: int, window: np.ndarray, window_channel: np.ndarray, chains: int) -> ChainJumps:
-    """Phase jumps of each packet (window: its sweep window; window_channel: each window's channel)."""
+def persistent_steps(
+    rate_per_min: float, seed: int, duration_s: float, chains: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The steps of a Poisson process at `rate_per_min` over the run: their times (s, ascending),
+    the chain each moves and its direction (+1 or -1 jump step)."""
+    rng = np.random.default_rng([seed, STEP_STREAM])
+    count = rng.poisson(rate_per_min * duration_s / 60.0) if rate_per_min > 0 else 0
+    times = np.sort(rng.uniform(0.0, duration_s, count))
+    return times, rng.integers(0, chains, count), rng.choice([-1, 1], count)
+
+
+def step_state(times: np.ndarray, chain: np.ndarray, sign: np.ndarray, at_s: np.ndarray, chains: int) -> np.ndarray:
+    """Each chain's accumulated steps (multiples of the jump step) at the times `at_s`: (len(at_s), chains)."""
+    moves = np.zeros((len(times) + 1, chains), dtype=int)
+    moves[np.arange(1, len(times) + 1), chain] = sign
+    return np.cumsum(moves, axis=0)[np.searchsorted(times, at_s, side="right")]
+
+
+def chain_jumps(
+    rx: Receiver,
+    seed: int,
+    window: np.ndarray,
+    window_channel: np.ndarray,
+    chains: int,
+    packet_t: np.ndarray | None = None,
+    duration_s: float = 0.0,
+) -> ChainJumps:
+    """Phase jumps of each packet (window: its sweep window; window_channel: each window's channel;
+    packet_t: its time in s from the start, for the persistent steps over `duration_s`)."""
     rng = np.random.default_rng([seed, JUMP_STREAM])
     channels = sorted({int(c) for c in window_channel})
     run = {c: rng.integers(0, JUMP_DRAWS, chains) * rx.jumps_per_run for c in channels}
@@ -114,10 +145,15 @@ def chain_jumps(rx: Receiver, seed: int, window: np.ndarray, window_channel: np.
     steps = np.array([phase_jump_step_rad(int(c)) for c in channels])
     step = steps[np.searchsorted(channels, window_channel[window])] if len(window) else np.zeros(0)
     levels = {c: round(2 * math.pi / s) for c, s in zip(channels, steps, strict=True)}
+    multiples = state[window] + extra
+    times, chain, sign = persistent_steps(rx.steps_per_minute, seed, duration_s, chains)
+    if len(times) and packet_t is not None:
+        multiples = multiples + step_state(times, chain, sign, packet_t, chains)
     return ChainJumps(
-        (state[window] + extra) * step[:, None],
+        multiples * step[:, None],
         {c: [int(v) % levels[c] for v in run[c]] for c in channels},
         int(redraw.sum()),
+        [(round(float(t), 6), int(c), int(s)) for t, c, s in zip(times, chain, sign, strict=True)],
     )
 
 
@@ -204,7 +240,7 @@ def simulate(
     keep = np.flatnonzero(heard)
     n = len(keep)
     window_channel = np.array([scenario.tags[i].channel for i in window_tags])
-    jumps = chain_jumps(rx, seed, window[keep], window_channel, len(antennas))
+    jumps = chain_jumps(rx, seed, window[keep], window_channel, len(antennas), true_t[keep], duration)
     imp = Impairments(
         rng.uniform(*rx.sampling_offset_ns, n) * 1e-9,
         rng.uniform(0, 2 * np.pi, n),
@@ -344,6 +380,14 @@ def simulate(
             "per_packet": rx.jumps_per_packet,
             "run_steps": jumps.run_steps,
             "retunes_redrawn": jumps.retunes_redrawn,
+            **(
+                {
+                    "steps_per_minute": rx.steps_per_minute,
+                    "steps": [{"time_s": t, "chain": c, "step": s} for t, c, s in jumps.steps],
+                }
+                if rx.steps_per_minute
+                else {}
+            ),
         },
     }
     metadata = {

@@ -340,3 +340,28 @@ def test_chain_jumps_are_multiples_of_the_channel_step():
     multiples = np.mod(np.round(packet.phase_rad / steps), levels_of)
     within = [len(np.unique(multiples[windows == w], axis=0)) for w in range(40)]
     assert np.mean(np.array(within) > 1) > 0.9, "per packet: the jumps differ within a window"
+
+
+def test_persistent_steps_happen_at_random_moments_and_stay():
+    """Steps at 3 a minute over 20 minutes: about 60 (Poisson), each one chain by one jump step (pi at
+    5 GHz, pi/2 at 2.4 GHz), in force from its moment until the next, on every channel alike."""
+    t = np.linspace(0.0, 1200.0, 24_000)
+    windows = np.arange(len(t)) // 5
+    window_channel = np.tile([6, 149], len(t) // 10 + 1)[: windows[-1] + 1]
+    j = chain_jumps(Receiver(steps_per_minute=3.0), 4, windows, window_channel, 3, t, 1200.0)
+    assert 40 <= len(j.steps) <= 80, len(j.steps)  # 60 expected: 2.6 standard deviations either way
+    assert all(c in (0, 1, 2) and s in (-1, 1) for _, c, s in j.steps)
+    step = np.array([phase_jump_step_rad(int(c)) for c in window_channel[windows]])[:, None]
+    multiples = np.round(j.phase_rad / step).astype(int)
+    np.testing.assert_allclose(j.phase_rad, multiples * step, atol=1e-9)
+    changes = np.flatnonzero(np.any(np.diff(multiples, axis=0) != 0, axis=1))
+    step_times = np.array([time for time, _, _ in j.steps])
+    # the state changes only across a step's moment, by that step's chain and sign
+    assert all(np.any((step_times > t[k]) & (step_times <= t[k + 1])) for k in changes)
+    first_time, first_chain, first_sign = j.steps[0]
+    before, after = t < first_time, (t >= first_time) & (t < j.steps[1][0])
+    assert np.all(multiples[before] == 0)
+    expected = np.zeros(3, int)
+    expected[first_chain] = first_sign
+    assert np.all(multiples[after] == expected)
+    assert chain_jumps(Receiver(), 4, windows, window_channel, 3, t, 1200.0).steps == []
