@@ -155,10 +155,10 @@ def jump_bearing(sc: Scene, k: int, carried: int, rng: np.random.Generator) -> t
     return burst_candidates(true_angle(sc, k, 0), carried, jumps, JUMP_STD, rng), jumps
 
 
-def run_with_jumps(carried: np.ndarray, seed: int = 0, update_every: int = 2):
-    """A 15 s arc with tag 1 (jump candidates) and tag 2 (one angle, no jumps) heard in turn; the
-    window and, after each update, tag 1's (active, covariance, position, bearings waiting)."""
-    sc = scene(seconds=15.0, tags=((3.0, 2.0), (-1.0, 2.5)))
+def run_with_jumps(carried: np.ndarray, seed: int = 0, update_every: int = 2, seconds: float = 15.0):
+    """An arc of `seconds` with tag 1 (jump candidates) and tag 2 (one angle, no jumps) heard in
+    turn; the window and, after each update, tag 1's (active, covariance, position, bearings waiting)."""
+    sc = scene(seconds=seconds, tags=((3.0, 2.0), (-1.0, 2.5)))
     rng = np.random.default_rng(seed)
     w = SlidingWindow(WindowSettings(window=30, **EXACT_IMU))
     trace = []
@@ -194,7 +194,7 @@ def window_choices(w: SlidingWindow, slot: int) -> tuple[np.ndarray, np.ndarray]
     return np.array(used), np.array(where)
 
 
-def test_a_tag_with_jump_candidates_waits_for_the_search_then_locks_its_combination():
+def test_a_tag_with_jump_candidates_waits_for_the_search_then_holds_its_combination():
     """Once-per-run jumps: the tag's bearings are not used (its covariance stays the prior, its
     estimate its first guess) until the search has found it; then it is used, lands near the
     truth, and the max-mixture settles on the combination the chains carry."""
@@ -221,7 +221,33 @@ def test_a_tag_with_jump_candidates_waits_for_the_search_then_locks_its_combinat
     assert w.observable()[t]
 
 
-def test_a_tag_whose_jumps_change_at_every_retune_is_found_but_never_locked():
+STEP_DWELLS = 2
+"""a chain stepping mid-run is followed within this many of the tag's dwells"""
+
+
+def test_a_chain_stepping_mid_run_is_followed_and_the_tag_stays_within_3_sigma():
+    """The chains carry combination 3 for 15 s, then one chain steps (combination 1) and stays so for
+    15 s more: the bearings after the step take the new combination's candidate within STEP_DWELLS
+    of the tag's dwells, and the published estimate stays within 3 standard deviations of its own
+    covariance throughout (a hard lock onto the held combination kept the old one, and the tag
+    drifted off with a tight covariance)."""
+    carried = np.r_[np.full(150, 3), np.full(150, 1)]
+    sc, w, trace = run_with_jumps(carried, seconds=30.0)
+    t = w.tag_ids.index(1)
+    final = [
+        (round(e.stamp_ns / 1e8), int(e.candidate_jumps[j, e.choice[j]]))
+        for e in [*w.left, *w.epochs]
+        for j in np.flatnonzero(e.tags == t)
+    ]
+    after = [combination for k, combination in final if k >= 150]
+    wrong = [i for i, combination in enumerate(after) if combination != 1]
+    assert len(after) > 50 and (not wrong or max(wrong) < STEP_DWELLS), wrong
+    sigmas = [math.sqrt((p - sc.tags[0]) @ np.linalg.solve(cov, p - sc.tags[0])) for on, cov, p, _ in trace if on]
+    assert len(sigmas) > 50 and max(sigmas) <= 3.0, max(sigmas)
+    assert np.linalg.norm(w.tag_positions()[t] - sc.tags[0]) < 0.16
+
+
+def test_a_tag_whose_jumps_change_at_every_retune_is_found_but_holds_none():
     carried = np.random.default_rng(11).integers(0, 4, 150)
     sc, w, trace = run_with_jumps(carried, seed=1)
     t = w.tag_ids.index(1)

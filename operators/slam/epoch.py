@@ -28,8 +28,6 @@ class Epoch:
     """the candidate each bearing uses now (max-mixture: the likeliest at the current estimate)"""
     messages: list[Any] = field(default_factory=list)
     """what the bearings came from, handed back with the final choice (opaque here)"""
-    free_choice: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    """the candidate each bearing would take without its tag's locked combination (what the lock learns from)"""
     doubt: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """per bearing: the variance (rad^2) the other candidates' chances add to the chosen one's angle"""
     velocity_info: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
@@ -47,8 +45,6 @@ class Epoch:
     def __post_init__(self) -> None:
         if len(self.choice) != len(self.tags):
             self.choice = np.zeros(len(self.tags), int)
-        if len(self.free_choice) != len(self.tags):
-            self.free_choice = np.zeros(len(self.tags), int)
         if len(self.doubt) != len(self.tags):
             self.doubt = np.zeros(len(self.tags))
 

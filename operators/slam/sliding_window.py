@@ -119,7 +119,7 @@ class SlidingWindow:
     finder: TagFinder = field(default_factory=TagFinder)
     """the tags waiting for the search, and what it found"""
     jumps: JumpMemory = field(default_factory=JumpMemory)
-    """per tag slot: the jump combinations of its recent bearings (the max-mixture's weights, the lock)"""
+    """per tag slot: the jump combinations of its recent bearings (the max-mixture's switch prior)"""
     left: list[Epoch] = field(default_factory=list)
     """epochs that left the window since the owner last emptied this list (their choices are final)"""
     stacked: Bearings | None = field(default=None, repr=False)
@@ -307,16 +307,14 @@ class SlidingWindow:
         b = self._bearings()
         if len(b.tag) == 0 or b.angles.shape[1] == 1:
             return
-        kept = Choice(
-            *(np.concatenate([getattr(e, name) for e in self.epochs]) for name in ("choice", "free_choice", "doubt"))
-        )
+        kept = Choice(*(np.concatenate([getattr(e, name) for e in self.epochs]) for name in ("choice", "doubt")))
         offset = self._offsets(x, b.epoch, b.tag)
         new = choose(
             offset, b.tag, b.angles, b.stds, b.jumps, self.active, self.jumps, self.settings.aoa_std_scale, kept
         )
         for k, e in enumerate(self.epochs):
             at = slice(b.starts[k], b.starts[k + 1])
-            e.choice, e.free_choice, e.doubt = new.choice[at], new.free[at], new.doubt[at]
+            e.choice, e.doubt = new.choice[at], new.doubt[at]
 
     def find_tags(self, steps: int | None = None) -> int:
         """Advance the searches for the tags waiting for their position by at most `steps` steps
@@ -608,7 +606,7 @@ class SlidingWindow:
         own = x[prior_indices(self.shape)]
         use = np.array([self.active[t] for t in old.tags], bool)
         for j in np.flatnonzero(use):
-            jump = int(old.candidate_jumps[j, old.free_choice[j]])
+            jump = int(old.candidate_jumps[j, old.choice[j]])
             if jump >= 0:
                 self.jumps.learn(int(old.tags[j]), jump)
         leaving = Leaving(old.velocity_info, old.velocity_linear, old.tags[use], old.bearing[use], old.std[use])
