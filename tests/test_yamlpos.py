@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import T0_NS
+from helpers import ROOT, T0_NS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -229,3 +229,25 @@ def test_check_of_arbitrary_text_never_raises(tmp_path_factory, text):
 @given(data=st.binary())
 def test_check_of_arbitrary_bytes_never_raises(tmp_path_factory, data):
     check_never_raises(tmp_path_factory.getbasetemp() / "bytes.yaml", data.decode("utf-8", errors="replace"))
+
+
+@pytest.mark.parametrize(
+    ("text", "value"), [("1e9", 1e9), ("1E-3", 1e-3), ("-2.5e+4", -2.5e4), (".5e1", 5.0), ("1_000e2", 1e5)]
+)
+def test_a_float_with_an_exponent_is_a_float_as_python_reads_it(text, value):
+    assert parse_scalar(text) == value and isinstance(parse_scalar(text), float)
+    assert load(f"x: {text}\n", "f.yaml").data == {"x": value}
+
+
+@pytest.mark.parametrize("text", ["1e", "e9", "1e9x", "0x1p3"])
+def test_text_that_only_looks_like_an_exponent_stays_text(text):
+    assert parse_scalar(text) == text
+
+
+def test_exponent_floats_reach_params_from_files_and_the_command_line(capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    from rover.datasets.scenario import load_scenario
+
+    assert load_scenario("paper", {"receiver.dwell_s": "5e-2"}).receiver.dwell_s == 0.05
+    assert main(["check", "pipeline.yaml", "--set", "slam.huber_sigma=1e0"]) == 0, capsys.readouterr().err
+    assert main(["check", "pipeline.yaml", "--set", "slam.huber_sigma=1e0x"]) == 2

@@ -7,6 +7,7 @@ in a dataset's metadata) is held to three limits, so a hostile or broken input i
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -162,6 +163,12 @@ def _yaml_error(file: str, exc: yaml.YAMLError, what: str) -> SpecError:
     mark = (exc.problem_mark or exc.context_mark) if isinstance(exc, yaml.MarkedYAMLError) else None
     line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
     return SpecError([Diagnostic(file, line, col, f"{what}: {_problem(exc)}")])
+
+
+EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9][0-9_]*)[eE][-+]?[0-9]+$")
+"""floats with an exponent that YAML 1.1 leaves as strings (`1e9`, `1.5E-3`: it wants a dot and a signed
+exponent), read as floats, as YAML 1.2 and Python do"""
+_LimitedLoader.add_implicit_resolver("tag:yaml.org,2002:float", EXPONENT_FLOAT, list("-+0123456789."))
 
 
 def _compose(text: str, file: str) -> tuple[_LimitedLoader, yaml.Node | None]:
