@@ -21,22 +21,23 @@ def default_pipeline() -> Path:
     return Path(str(resources.files("rover").joinpath("pipeline.yaml")))
 
 
-def overrides(args: argparse.Namespace) -> dict[str, Any]:
-    """The pipeline's `${var}` and `OPERATOR.PARAM` values given by `--set` and the options that stand for one."""
+PIPELINE_FLAGS = ("dataset", "output", "speed", "timing_topic")
+"""options that stand for a pipeline variable (`--output DIR` is `--set output=DIR`)"""
+
+
+def overrides(args: argparse.Namespace, flags: tuple[str, ...] = PIPELINE_FLAGS) -> dict[str, Any]:
+    """The pipeline's `${var}` and `OPERATOR.PARAM` values given by `--set` and by the options `flags`
+    that stand for one (a command whose option of that name means something else leaves it out)."""
     values: dict[str, Any] = {}
     for item in args.set or []:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise BadInput(f"--set {item!r}: expected NAME=VALUE")
         values[key.strip()] = parse_scalar(value, f"--set {key.strip()}")
-    if getattr(args, "dataset", None) is not None:
-        values["dataset"] = args.dataset
-    if getattr(args, "output", None) is not None:
-        values["output"] = args.output
-    if getattr(args, "speed", None) is not None:
-        values["speed"] = parse_scalar(args.speed, "--speed")
-    if getattr(args, "timing_topic", None) is not None:
-        values["timing_topic"] = args.timing_topic
+    for flag in flags:
+        if getattr(args, flag, None) is not None:
+            value = getattr(args, flag)
+            values[flag] = parse_scalar(value, f"--{flag}") if flag == "speed" else value
     return values
 
 

@@ -54,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
 
     spec = None
     if args.pipeline:
-        spec, problems = parse(read_document(args.pipeline), overrides(args))
+        values = overrides(args, flags=())  # its -o is the certificates' folder, not ${output}
+        spec, problems = parse(read_document(args.pipeline), values)
         if problems:
             raise SpecError(problems)
     hosts = [h.strip() for h in args.hosts.split(",") if h.strip()] if args.hosts else list(spec.hosts if spec else [])

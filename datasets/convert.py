@@ -366,6 +366,9 @@ def convert(
             if payload is None or stamp is None:
                 report.dropped[f"{role}: undecodable"] += 1
                 continue
+            if stamp < 0:  # a header's sec is signed: before 1970, which no MCAP log time can hold
+                report.dropped[f"{role}: stamp before 1970"] += 1
+                continue
             if (lo is not None and stamp < lo) or (hi is not None and stamp > hi):
                 continue
             if stamp < last.get(role, stamp):

@@ -274,3 +274,21 @@ def test_a_message_shorter_than_its_type_is_dropped_and_counted(tmp_path):
     report = convert([bag], tmp_path / "out.mcap", setup=setup)
     assert report.dropped == {"imu: undecodable": 2}
     assert report.written["/imu/data"] == 298
+
+
+def test_a_stamp_before_1970_is_dropped_and_counted(tmp_path):
+    """A header's sec is signed; no MCAP log time holds a negative stamp (it failed with a struct
+    error, found by the contract fuzzing)."""
+    bag = tmp_path / "bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=typestore)
+        for i in range(300):
+            stamp = -5_000_000_000 if i == 10 else T0_NS + i * 5_000_000
+            g = make("geometry_msgs/msg/Vector3", z=9.8)
+            data = serialize(make("sensor_msgs/msg/Imu", header=header(stamp, "imu"), linear_acceleration=g))
+            writer.write(imu, T0_NS + i * 5_000_000, data)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP + "topics: {csi: null}\n")
+    report = convert([bag], tmp_path / "out.mcap", setup=setup)
+    assert report.dropped == {"imu: stamp before 1970": 1}
+    assert report.written["/imu/data"] == 299

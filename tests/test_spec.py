@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from helpers import ROOT
 
 from rover.cli.registry import BUILTINS
 from rover.errors import SpecError
@@ -222,3 +223,20 @@ def test_under_security_a_connect_endpoint_must_reach_one_host():
     plain = text.split("security:")[0].replace("tls/", "tcp/") + "operators: {}\n"
     spec, problems = parse(load(plain, "s.yaml"))
     check(spec, BUILTINS, problems)
+
+
+def test_a_set_of_a_variable_the_pipeline_neither_declares_nor_uses_is_refused_with_a_did_you_mean(capsys):
+    from rover.cli.app import main
+
+    pipeline = str(ROOT / "pipeline.yaml")
+    assert main(["run", pipeline, "--set", "outptu=zzz"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"rover: error: --set outptu=...: {pipeline} has no variable 'outptu'; did you mean 'output'? "
+        "(vars: dataset, output, port, setup, speed, timing_topic; OPERATOR.PARAM sets a param)"
+    ]
+
+
+def test_a_variable_used_but_not_declared_may_be_set():
+    doc = load("name: p\noperators:\n  a: {uses: x, params: {n: '${n}'}}\n", "p.yaml")
+    spec, _ = parse(doc, {"n": 3})
+    assert spec.operators["a"].params == {"n": 3}

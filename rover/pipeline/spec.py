@@ -187,6 +187,17 @@ def _substitute(value: Any, path: tuple[Any, ...], variables: dict[str, Any], co
     return VAR_RE.sub(lambda m: str(lookup(m.group(1))), value)
 
 
+def referenced_variables(data: Any) -> set[str]:
+    """The names of every `${name}` in the string values of a loaded document."""
+    if isinstance(data, str):
+        return set(VAR_RE.findall(data))
+    if isinstance(data, dict):
+        return set().union(*(referenced_variables(v) for v in data.values()))
+    if isinstance(data, list):
+        return set().union(*(referenced_variables(v) for v in data))
+    return set()
+
+
 def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[PipelineSpec, list[Diagnostic]]:
     """Build a PipelineSpec from a loaded document, with the structural problems found on the way.
 
@@ -217,6 +228,12 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
             continue
         if key not in variables and not key.isidentifier():
             raise BadInput(f"--set {key}=...: variable names are identifiers (OPERATOR.PARAM sets a param)")
+        if key not in variables and key not in referenced_variables(top):
+            declared = sorted(str(k) for k in variables)
+            raise BadInput(
+                f"--set {key}=...: {doc.file} has no variable {key!r}{did_you_mean(key, declared)} "
+                f"(vars: {', '.join(declared) or 'none'}; OPERATOR.PARAM sets a param)"
+            )
         variables[key] = value
         set_vars[key] = value
 
