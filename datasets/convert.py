@@ -349,6 +349,8 @@ def convert(
         if chosen["csi"] is None:
             log.warning("the setup says topics: {csi: null}: writing an IMU/odometry-only dataset")
         lo, hi = _time_bound(start, reader.start_time), _time_bound(end, reader.start_time)
+        if lo is not None and hi is not None and lo >= hi:
+            raise BadInput(f"--start {start:g} is not before --end {end:g}: the window holds nothing")
         role_of = {topic: role for role, topic in report.topics.items()}
         connections = [c for c in reader.connections if c.topic in role_of]
         total = sum(c.msgcount for c in connections)
@@ -381,6 +383,12 @@ def convert(
                 continue
             rows += [(s, len(rows) + k, OUTPUT_TOPICS[role], m) for k, (s, m) in enumerate(converted)]
         rows += [(s, len(rows) + k, OUTPUT_TOPICS["imu"], m) for k, (s, m) in enumerate(imu.flush())]
+        if not rows and total and (lo is not None or hi is not None):
+            span = (reader.end_time - reader.start_time) / 1e9
+            raise BadInput(
+                f"{', '.join(map(str, sources.bags))}: --start/--end hold none of its {total:,} sensor messages "
+                f"(it spans {span:.1f} s from its start, {reader.start_time / 1e9:.3f} s absolute)"
+            )
     finally:
         reader.close()
     for role, n in report.resorted.items():
@@ -389,9 +397,15 @@ def convert(
         log.warning("dropped %d messages: %s", n, why)
     rows.sort(key=lambda r: (r[0], r[1]))
     first = rows[0][0] if rows else 0
+    truth_rows = [
+        (stamp, TRUTH_POSE if msg.__msgtype__ == "geometry_msgs/msg/PoseStamped" else TRUTH_TAGS, msg)
+        for stamp, msg in _truth_messages(truth, tags, first)
+    ]
+    # the truth is clipped to the --start/--end window too (the tags have no time)
     rows += [
-        (stamp, len(rows) + k, TRUTH_POSE if msg.__msgtype__ == "geometry_msgs/msg/PoseStamped" else TRUTH_TAGS, msg)
-        for k, (stamp, msg) in enumerate(_truth_messages(truth, tags, first))
+        (stamp, len(rows) + k, topic, msg)
+        for k, (stamp, topic, msg) in enumerate(truth_rows)
+        if topic == TRUTH_TAGS or ((lo is None or stamp >= lo) and (hi is None or stamp <= hi))
     ]
     rows.sort(key=lambda r: (r[0], r[1]))
     metadata = {dataset.SETUP_METADATA: {"yaml": dataset.setup_yaml(rig)}, dataset.PROVENANCE_METADATA: origin}

@@ -55,6 +55,11 @@ class DatasetReplay(Source):
         if not p.path:
             raise BadInput("dataset_replay: no dataset given (pass --dataset PATH or set params.path)")
         self.path = Path(p.path)
+        if self.path.is_dir():
+            raise BadInput(
+                f"{self.path}: is a folder, not a dataset: a ROS 2 bag or a recording folder becomes one with "
+                f"`rover convert {self.path} -o DATASET.mcap`"
+            )
         if not self.path.is_file():
             raise BadInput(f"{self.path}: no such dataset file")
         for port in p.topics:

@@ -292,3 +292,23 @@ def test_a_stamp_before_1970_is_dropped_and_counted(tmp_path):
     report = convert([bag], tmp_path / "out.mcap", setup=setup)
     assert report.dropped == {"imu: stamp before 1970": 1}
     assert report.written["/imu/data"] == 299
+
+
+def test_an_empty_window_is_refused_and_the_truth_is_clipped_to_the_window(tmp_path):
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, StoragePlugin.MCAP)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    truth = tmp_path / "truth.tum"
+    truth.write_text("".join(f"{(T0_NS + i * 10**8) / 1e9:.9f} {i * 0.1} 0 0 0 0 0 1\n" for i in range(40)))
+    out = tmp_path / "out.mcap"
+    with pytest.raises(BadInput, match=r"--start 100 is not before --end 50"):
+        convert([bag], out, setup=setup, start=100, end=50)
+    with pytest.raises(BadInput, match=r"--start/--end hold none of its 442 sensor messages \(it spans 2\.0 s"):
+        convert([bag], out, setup=setup, start=100, truth=truth)
+    assert not out.exists()
+    convert([bag], out, setup=setup, start=0.5, end=1.0, truth=truth)
+    poses = [s for t, s, _d in read_bag(out) if t == "/groundtruth/pose"]
+    bag_start = T0_NS + 1_000
+    assert poses and min(poses) >= bag_start + 500_000_000 and max(poses) <= bag_start + 1_000_000_000
+    assert len(poses) == 5

@@ -62,6 +62,8 @@ def test_bad_datasets_are_bad_input(tmp_path):
         DatasetReplay(ReplayParams(path=""))
     with pytest.raises(BadInput, match="no such dataset file"):
         DatasetReplay(ReplayParams(path=str(tmp_path / "none.mcap")))
+    with pytest.raises(BadInput, match=rf"{tmp_path}: is a folder, not a dataset: .* `rover convert {tmp_path} -o"):
+        DatasetReplay(ReplayParams(path=str(tmp_path)))
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"this is not an mcap file at all")
     with pytest.raises(BadInput, match="not a readable MCAP dataset"):
