@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     """Angles of arrival from a bare CSI Tool log: one row per burst, every candidate with its power."""
     from rover.formats.atomic_file import write_aside
     from rover.formats.bag import check_output
-    from rover.formats.intel5300 import read_dat
+    from rover.formats.intel5300 import decode_bfee, split_records
     from rover.formats.rig import load_rig
     from rover.formats.text import read_text
     from rover.formats.wifi import channel_freq_hz
@@ -51,9 +52,18 @@ def run(args: argparse.Namespace) -> int:
     if not source.is_file():
         raise BadInput(f"{source}: {'is a directory' if source.is_dir() else 'no such file'}")
     try:
-        records = read_dat(source)
+        raw, counts = split_records(source.read_bytes())
     except OSError as exc:
         raise BadInput(f"{source}: cannot read: {exc.strerror or exc}") from None
+    records = decode_bfee(raw)
+    if counts.n_corrupt or counts.n_garbage_bytes:
+        logging.getLogger("rover.aoa").warning(
+            "%s: %d record(s) cut short or corrupt and %d byte(s) of garbage skipped "
+            "(a log cut while being written ends with a cut record)",
+            source,
+            counts.n_corrupt,
+            counts.n_garbage_bytes,
+        )
     try:
         bursts = log_bursts(records, rig, channel, args.burst)
     except BadInput as exc:

@@ -242,3 +242,18 @@ def test_decode_names_the_topic_of_another_type_or_of_bad_bytes(tmp_path):
             BadInput, match=r"d\.mcap: topic /a: the message logged at \d+ ns is not a valid std_msgs/msg/Header"
         ):
             bag.decode(message._replace(data=b"\x00\x01\x00\x00\x07"), "std_msgs/msg/Header")
+
+
+def test_a_file_cut_while_being_written_says_so_and_where(tmp_path):
+    path = tmp_path / "full.mcap"
+    with BagWriter(path) as bag:
+        for i in range(2000):
+            bag.write("/imu/data", make("std_msgs/msg/String", data="x" * 100), T0_NS + i)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:30_000])
+    with pytest.raises(BadInput) as caught:
+        BagReader(cut, "not a readable MCAP dataset")
+    assert str(caught.value) == (
+        f"{cut}: not a readable MCAP dataset: the file ends early, at byte 30,000 (cut while it was being "
+        "written? a finished MCAP file ends with its magic bytes)"
+    )

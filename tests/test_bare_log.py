@@ -93,3 +93,21 @@ def test_a_calibration_file_of_the_wrong_shape_is_one_line(tmp_path):
     path = reference_data() / "csi" / "lgtm" / "lgtm-monitor.dat--1m-0-degrees--laptop-1--test-1.dat"
     status, _out, err = rover("-q", "aoa", str(path), "--setup", str(setup), "--calibration", str(calibration))
     assert status == 2 and "no receiver.phase_offsets_rad" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_log_cut_while_being_written_is_read_to_its_cut_and_says_so(tmp_path):
+    from helpers import run_rover
+
+    setup = tmp_path / "rig.yaml"
+    setup.write_text(LGTM_RIG)
+    whole = sorted((reference_data() / "csi" / "lgtm").glob("*.dat"))[0]
+    cut = tmp_path / "cut.dat"
+    cut.write_bytes(whole.read_bytes()[:-50])
+    proc = run_rover("aoa", str(cut), "--setup", str(setup), "--burst", "200")
+    assert proc.returncode == 0, proc.stderr
+    about_the_cut = [line for line in proc.stderr.splitlines() if str(cut) in line]
+    assert about_the_cut == [
+        f"rover: WARNING: {cut}: 1 record(s) cut short or corrupt and 0 byte(s) of garbage skipped "
+        "(a log cut while being written ends with a cut record)"
+    ]
+    assert f"{len(read_dat(whole).nrx) - 1} records" in proc.stdout

@@ -263,6 +263,13 @@ class BagReader:
             with self._reading():
                 if self._file.read(len(MAGIC)) != MAGIC:
                     raise BadInput(f"{self.path}: {failure}: not an MCAP file (no MCAP magic bytes at its start)")
+                size = self._file.seek(0, os.SEEK_END)
+                self._file.seek(max(size - len(MAGIC), 0))
+                if size < 2 * len(MAGIC) or self._file.read(len(MAGIC)) != MAGIC:
+                    raise BadInput(
+                        f"{self.path}: {failure}: the file ends early, at byte {size:,} (cut while it was being "
+                        "written? a finished MCAP file ends with its magic bytes)"
+                    )
                 self._file.seek(0)
                 self._reader: McapReader = make_reader(self._file, validate_crcs=True)
         except BaseException:
