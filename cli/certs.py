@@ -48,7 +48,7 @@ def _names(args: argparse.Namespace, hosts: list[str]) -> dict[str, list[str]]:
 def run(args: argparse.Namespace) -> int:
     """Issue a CA and one certificate per host (and the monitor) into a folder; print the
     security: section that uses them."""
-    from rover.pipeline.spec import MONITOR, NAME_RE, parse, read_document
+    from rover.pipeline.spec import MONITOR, NAME_RE, did_you_mean, parse, read_document
     from rover.pipeline.validation import listens_on_wildcard, served_addresses
     from rover.security.certs import issue
 
@@ -64,6 +64,11 @@ def run(args: argparse.Namespace) -> int:
     for host in hosts:
         if not NAME_RE.match(host) or host == MONITOR:
             raise BadInput(f"--hosts: {host!r} is not a host name (letters, digits, _ or -; {MONITOR!r} is reserved)")
+        if spec is not None and host not in spec.hosts:
+            raise BadInput(
+                f"--hosts: {args.pipeline} declares no host {host!r}{did_you_mean(host, spec.hosts)} "
+                f"(hosts: {', '.join(spec.hosts) or 'none'}): a certificate for it would serve no host of the pipeline"
+            )
     hosts = list(dict.fromkeys(hosts))
     given = _names(args, hosts)
     names: dict[str, list[str]] = {}

@@ -403,6 +403,19 @@ def test_cli_certs_lists_each_name_derived_from_the_pipeline_once(tmp_path):
     assert f"{out}/nuc.pem, {out}/nuc.key: nuc (names: nuc, 10.0.0.1, nuc.lab)" in proc.stdout.splitlines()
 
 
+def test_cli_certs_refuses_a_host_the_pipeline_does_not_declare(tmp_path):
+    pipeline = tmp_path / "sec.yaml"
+    pipeline.write_text(HOSTS + SECURITY + OPERATORS)
+    out = tmp_path / "pki"
+    proc = run_rover("certs", str(pipeline), "--hosts", "nuc,laptpo", "-o", str(out))
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [
+        f"rover: error: --hosts: {pipeline} declares no host 'laptpo'; did you mean 'laptop'? "
+        "(hosts: nuc, base, laptop): a certificate for it would serve no host of the pipeline"
+    ]
+    assert not out.exists()
+
+
 def test_cli_certs_accepts_a_pipeline_with_tls_endpoints_and_no_security_section_yet(tmp_path):
     """The first step of securing a pipeline: its endpoints are tls/, the security: section does not
     exist yet, and `rover certs PIPELINE` makes the certificates (names from the endpoints)."""
