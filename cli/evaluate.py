@@ -28,6 +28,7 @@ def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from rover.evaluation.checks import evaluation_notes
     from rover.evaluation.metrics import evaluate, render
     from rover.formats.run_dir import FAILED_RUN_FILE, load_run, load_truth, read_run_description
 
@@ -61,6 +62,16 @@ def run(args: argparse.Namespace) -> int:
     if not truth.tags and args.tags is None and str(source).endswith((".tum", ".txt")):
         logging.getLogger("rover.eval").warning("no tag truth: pass --tags CSV for tag errors")
     metrics = evaluate(run, truth, args.t_max_diff)
+    dataset = description.dataset if description is not None else None
+    own = None
+    if args.truth and dataset is not None and dataset.is_file():
+        own_truth = load_truth(dataset)
+        own = own_truth.trajectory if own_truth is not None else None
+    notes = evaluation_notes(metrics, len(run.final.stamp_ns), str(source), str(dataset), own, truth.trajectory)
+    for note in notes:
+        logging.getLogger("rover.eval").warning("%s: %s", args.run, note)
+    if notes:
+        metrics["notes"] = notes
     sys.stdout.write(json.dumps(metrics, indent=2) + "\n" if args.json else render(metrics))
     if args.figures:
         from rover.evaluation.figures import write_figures

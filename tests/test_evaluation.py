@@ -318,3 +318,28 @@ def test_eval_of_a_run_outside_the_truths_time_is_one_line(tmp_path, capsys):
         "trajectory.tum spans 1700000000.000-1700000023.940 s, 400 poses; "
         "the ground truth 1700001000.000-1700001022.800 s, 20 poses"
     )
+
+
+def test_a_truth_that_pairs_with_few_of_the_runs_poses_is_warned_of_and_noted(tmp_path):
+    run, _reference, tags = make_run(tmp_path)
+    t, xy, yaw = square_path()
+    partial = write_tum(tmp_path / "partial.tum", t[:160], xy[:160], yaw[:160])
+    proc = run_rover("eval", str(run), "--truth", str(partial), "--tags", str(tags), "--json")
+    assert proc.returncode == 0, proc.stderr
+    note = "the truth pairs with 160 of the run's 400 final poses (40%; at least 90% expected): is it this run's truth?"
+    assert proc.stderr.splitlines() == [f"rover: WARNING: {run}: {note}"]
+    assert json.loads(proc.stdout)["notes"] == [note]
+    whole = run_rover("eval", str(run), "--truth", str(tmp_path / "truth.tum"), "--tags", str(tags), "--json")
+    assert whole.stderr == "" and "notes" not in json.loads(whole.stdout)
+
+
+def test_two_truths_are_the_same_only_where_they_agree():
+    from rover.evaluation.checks import same_trajectory
+    from rover.evaluation.metrics import Poses2D
+
+    t, xy, yaw = square_path()
+    stamps = (t * 1e9).astype(np.int64)
+    truth = Poses2D(stamps, xy, yaw)
+    assert same_trajectory(truth, Poses2D(stamps[::3], xy[::3], yaw[::3]))
+    assert not same_trajectory(truth, Poses2D(stamps, xy + [0.05, 0.0], yaw))
+    assert not same_trajectory(truth, Poses2D(stamps + 1, xy, yaw))
