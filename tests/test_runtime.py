@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import threading
@@ -417,8 +418,11 @@ operators:
 """)
     proc = run_rover("run", str(pipeline), timeout=60)
     assert proc.returncode == 1
-    assert "operator 'boom' (toyops.Explode) failed: ZeroDivisionError: boom" in proc.stderr
+    assert "operator 'boom' (toyops.Explode) failed: ZeroDivisionError: boom (-v prints its traceback)" in proc.stderr
     assert "Traceback" not in proc.stderr
+    verbose = run_rover("-v", "run", str(pipeline), timeout=60)
+    assert verbose.returncode == 1
+    assert "Traceback" in verbose.stderr and re.search(r'toyops\.py", line \d+, in on_input', verbose.stderr)
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir()), "a failed run left output"
 
 

@@ -295,8 +295,10 @@ class Runner:
             exc = failed.error
             if isinstance(exc, (OperatorFailed, OutputFailed, BadInput)):
                 raise exc
+            log.info("operator %r failed:", failed.name, exc_info=exc)  # its traceback, shown with -v
+            hint = "" if log.isEnabledFor(logging.INFO) else " (-v prints its traceback)"
             raise OperatorFailed(
-                f"operator {failed.name!r} ({failed.node.spec.uses}) failed: {type(exc).__name__}: {exc}"
+                f"operator {failed.name!r} ({failed.node.spec.uses}) failed: {type(exc).__name__}: {exc}{hint}"
             ) from exc
 
     def _wire_types(self, node: Node) -> dict[str, str]:
