@@ -5,10 +5,23 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from typing import Any
+from typing import IO, Any
 
 from rover.cli.args import add_set, overrides
 from rover.errors import BadInput, SpecError
+
+PIPED_WIDTH = 1000
+"""columns of `rover status --once` written to a pipe or file (rich would cut it to 80)"""
+
+
+def show(renderable: Any, file: IO[str] | None = None) -> None:
+    """Print a table to the terminal at its width, or to a pipe or file whole."""
+    from rich.console import Console
+
+    console = Console(file=file)
+    if not console.is_terminal:
+        console = Console(file=file, width=PIPED_WIDTH)
+    console.print(renderable)
 
 
 def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
@@ -36,7 +49,6 @@ def run(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from rich.console import Console
     from rich.live import Live
 
     from rover.pipeline.spec import endpoint_problem, parse, read_document
@@ -88,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
             if args.json:
                 print(as_json(current, previous, notes))
             else:
-                Console().print(render(current, previous, expected, notes, client.clocks.best()))
+                show(render(current, previous, expected, notes, client.clocks.best()))
             return 0
         if args.json:  # one line per refresh
             print(as_json(current, previous, notes), flush=True)

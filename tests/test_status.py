@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import json
 import re
@@ -520,3 +521,25 @@ def test_cli_bad_options_are_one_line(tmp_path: Path):
     (tmp_path / "alone.yaml").write_text("name: alone\noperators:\n  replay: {uses: dataset_replay}\n")
     proc = run_rover("status", str(tmp_path / "alone.yaml"), timeout=60)
     assert proc.returncode == 2 and "no host of pipeline alone listens on an endpoint" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("state", "detail"),
+    [("waiting", "waiting for b, c"), ("running", "running with b, c"), ("finishing", "waiting for b, c to finish")],
+)
+def test_the_other_hosts_are_named_for_what_this_one_waits_on(state, detail):
+    """Before the run the others are not ready; while it runs they are not done, which is no wait."""
+    status = dataclasses.replace(snapshot(0), state=state, waiting_for=["b", "c"])
+    assert detail in _text(render({"a": status}, {}, ["a", "b", "c"]))
+
+
+def test_a_table_written_to_a_pipe_is_whole():
+    import io
+
+    from rover.cli.status import show
+
+    hosts = [f"host_with_a_long_name_{i}" for i in range(6)]
+    status = dataclasses.replace(snapshot(0), state="waiting", waiting_for=hosts)
+    out = io.StringIO()
+    show(render({"a": status}, {}, ["a", *hosts]), file=out)
+    assert "…" not in out.getvalue() and f"waiting for {', '.join(hosts)}" in out.getvalue()

@@ -403,7 +403,14 @@ def render(
         if status is None:
             hosts.add_row(Text(host), Text("not answering", style="red"), Text("-"), Text("-"), Text(""))
             continue
-        detail = [f"waiting for {', '.join(status.waiting_for)}"] if status.waiting_for else []
+        # before the run the others are not ready yet; during and after it they are not done yet
+        pending = ", ".join(status.waiting_for)
+        if status.state == "waiting":
+            detail = [f"waiting for {pending}"] if pending else []
+        elif status.state == "running":
+            detail = [f"running with {pending}"] if pending else []
+        else:
+            detail = [f"waiting for {pending} to finish"] if pending else []
         detail += [f"lost {', '.join(status.lost)}"] if status.lost else []
         clock = offsets.get(host)
         hosts.add_row(
