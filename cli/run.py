@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from rover.cli.args import add_set, default_pipeline, overrides
 from rover.cli.registry import BUILTINS
+from rover.cli.summary import run_summary
 
 
 def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
@@ -44,6 +46,15 @@ def run(args: argparse.Namespace) -> int:
     if args.view is not None:
         from rover.cli.view import load_with_view
 
-        return runner.run(load_with_view(path, BUILTINS, overrides(args), args.view, args.host), args.host)
-    pipeline = load_and_check(path, BUILTINS, overrides(args))
-    return runner.run(pipeline, args.host)
+        pipeline = load_with_view(path, BUILTINS, overrides(args), args.view, args.host)
+    else:
+        pipeline = load_and_check(path, BUILTINS, overrides(args))
+    status = runner.run(pipeline, args.host)
+    folders = [
+        Path(str(node.spec.params.get("out", "rover-out")))
+        for node in pipeline.nodes.values()
+        if node.spec.uses == "run_outputs" and args.host in (None, node.spec.host)
+    ]
+    for line in (line for out in folders for line in run_summary(out)) if not args.quiet else ():
+        print(line)
+    return status

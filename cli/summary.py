@@ -1,0 +1,53 @@
+"""What `rover run` prints when it ends, like `ros2 bag info` or evo: the time processed, poses, tags
+localized of those heard (and which not), the errors when the dataset has truth, and where the
+outputs went; read back from the output folder, so it says what the files say."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+
+def run_summary(out: Path) -> list[str]:
+    """Lines summarizing the run whose results are in `out` (none when it holds no run.json)."""
+    run_file = out / "run.json"
+    if not run_file.is_file():
+        return []
+    run = json.loads(run_file.read_text(encoding="utf-8"))
+    lines = []
+    stamps = [float(line.split()[0]) for line in _lines(out / "trajectory.tum")]
+    span = f", {stamps[-1] - stamps[0]:.1f} s" if len(stamps) > 1 else ""
+    lines.append(f"run {run.get('status', '?')}: {len(stamps):,} poses{span}, {run.get('received', 0):,} messages")
+    tags = _tags(out / "tags.csv")
+    if tags:
+        known = [t for t, localized in tags if localized]
+        missing = [t for t, localized in tags if not localized]
+        never = f" (never localized: {', '.join(missing)})" if missing else ""
+        lines.append(f"tags localized: {len(known)} of {len(tags)} heard{never}")
+    metrics_file = out / "metrics.json"
+    if metrics_file.is_file():
+        metrics = json.loads(metrics_file.read_text(encoding="utf-8"))
+        robot = metrics.get("robot", {}).get("trajectory.tum", {}).get("unaligned", {})
+        parts = [f"robot mean {robot['mean_m'] * 100:.1f} cm"] if "mean_m" in robot else []
+        for kind, key in (("LOS", "los_tags_mean_m"), ("NLOS", "nlos_tags_mean_m")):
+            if metrics.get(key) is not None:
+                parts.append(f"{kind} tags mean {metrics[key] * 100:.1f} cm")
+        if parts:
+            lines.append("errors against the dataset's truth: " + ", ".join(parts))
+    lines.append(f"wrote {out}/ ({', '.join(sorted(['run.json', *run.get('files', [])]))})")
+    return lines
+
+
+def _lines(path: Path) -> list[str]:
+    if not path.is_file():
+        return []
+    return [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
+def _tags(path: Path) -> list[tuple[str, bool]]:
+    """(id, localized) of every tag in a tags.csv."""
+    if not path.is_file():
+        return []
+    with path.open(encoding="utf-8", newline="") as f:
+        return [(row["id"], bool(row.get("x"))) for row in csv.DictReader(f)]
