@@ -356,3 +356,31 @@ def test_a_run_sends_on_ports_declared_by_params(tmp_path):
     run_rover("run", str(path), "--dataset", str(dataset), "--output", str(out), check=True)
     topics = [t for t, _s, _d in read_bag(out / "results.mcap")]
     assert topics.count("/a") == 200
+
+
+TWO_HOSTS = """\
+version: 1
+name: toy
+hosts:
+  robot: {listen: ["tcp/127.0.0.1:7447"]}
+  desk: {connect: ["tcp/127.0.0.1:7447"]}
+operators:
+  replay: {uses: dataset_replay, host: robot, params: {path: data.mcap}}
+  ticks: {uses: toyops.Ticker, host: desk}
+  heading: {uses: toyops.Heading, inputs: {imu: replay/imu, odom: replay/odom}}
+  record: {uses: recorder, inputs: {pose: heading/pose}, params: {out: out}}
+"""
+
+
+def test_an_operator_without_a_host_runs_where_its_inputs_come_from(tmp_path):
+    """As an operator added to the default pipeline without a host: through a chain of such operators too."""
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(TWO_HOSTS)
+    nodes = load_and_check(path, BUILTINS).nodes
+    assert (nodes["heading"].spec.host, nodes["record"].spec.host) == ("robot", "robot")
+
+
+def test_an_operator_without_a_host_fed_from_two_hosts_must_say_where_it_runs(tmp_path):
+    text = TWO_HOSTS.replace("inputs: {pose: heading/pose}", "inputs: {pose: heading/pose, imu: ticks/imu}")
+    found = problems(tmp_path, text)
+    has(found, at(text, "record:"), "operator 'record' has no host: (hosts: robot, desk)", "from several (desk, robot)")

@@ -332,16 +332,42 @@ def host_links(spec: PipelineSpec) -> dict[str, set[str]]:
     return links
 
 
+def place_with_inputs(spec: PipelineSpec) -> dict[str, str]:
+    """Put each operator without `host:` on the host its inputs come from, when they all come from
+    one (through other such operators too): an operator added to a multi-host pipeline runs beside
+    what feeds it, as written, without a host of its own. Returns the placements made."""
+    placed: dict[str, str] = {}
+    if not spec.hosts:
+        return placed
+    changed = True
+    while changed:
+        changed = False
+        for op in spec.operators.values():
+            if op.host is not None or not op.inputs:
+                continue
+            sources = {spec.operators[w.source].host for w in op.inputs.values() if w.source in spec.operators}
+            (host,) = sources if len(sources) == 1 else (None,)
+            if host is not None:
+                op.host = placed[op.name] = host
+                changed = True
+    return placed
+
+
 def _check_hosts(doc: Located, spec: PipelineSpec, problems: list[Diagnostic]) -> None:
     hosts = spec.hosts
+    place_with_inputs(spec)
     for op in spec.operators.values():
         path = ("operators", op.name, "host")
         if op.host is None:
             if hosts:
+                sources = sorted(
+                    {str(spec.operators[w.source].host) for w in op.inputs.values() if w.source in spec.operators}
+                )
+                why = f"; its inputs come from several ({', '.join(sources)})" if len(sources) > 1 else ""
                 problems.append(
                     doc.diag(
                         ("operators", op.name),
-                        f"operator {op.name!r} has no host: (hosts: {', '.join(hosts)})",
+                        f"operator {op.name!r} has no host: (hosts: {', '.join(hosts)}){why}",
                         key=True,
                     )
                 )
