@@ -38,7 +38,7 @@ def test_labels_frames_and_sends_the_schedule(caplog):
     op = ChannelSweep()
     early = frame(153, 0)  # as early as the setup: frames go first at a tie (port names), so it waits for it
     frames = [early] + [frame(ch, i + 1) for i, ch in enumerate([149, 161, 100, 157, 100])]
-    with caplog.at_level(logging.WARNING):
+    with caplog.at_level(logging.INFO):
         out = run_operator(op, {"frames": frames, "setup": [setup_msg()]})
     schedule = [e.msg for e in out if e.port == "schedule"]
     assert len(schedule) == 1
@@ -47,7 +47,15 @@ def test_labels_frames_and_sends_the_schedule(caplog):
     labelled = [(e.msg.channel, e.msg.tag_id, int(e.msg.bfee[1])) for e in out if e.port == "labelled"]
     assert labelled == [(153, 2, 0), (149, 1, 1), (161, 4, 2), (157, 3, 4)]
     assert op.drops == {"CSI frames on channel 100 no tag owns": 2}
-    assert "tag 4's 3rd harmonic" in caplog.text and "a conflict-free assignment" in caplog.text
+    warnings = [
+        r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and "channel plan" in r.getMessage()
+    ]
+    assert warnings == [
+        "channel plan: 1 conflict(s) between the tags' channels (-v lists them); a conflict-free assignment: "
+        "tag 1 -> 149, tag 2 -> 104, tag 3 -> 157, tag 4 -> 161"
+    ], "one line on every run of the same rig"
+    details = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert any("tag 4's 3rd harmonic" in line for line in details)
 
 
 def test_conflicts_are_errors_when_planning_a_live_sweep():

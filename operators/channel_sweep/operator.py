@@ -86,9 +86,11 @@ class ChannelSweep(Operator):
             lines = [c.message for c in found]
             if p.mode == "live":
                 raise BadInput(f"channel plan has {len(found)} conflict(s): {'; '.join(lines)}; {advice}")
-            for line in lines:
-                log.warning("channel plan: %s", line)
-            log.warning("channel plan: %s", advice)
+            for line in lines:  # each with -v; one warning line on every run of the same rig
+                log.info("channel plan: %s", line)
+            log.warning(
+                "channel plan: %d conflict(s) between the tags' channels (-v lists them); %s", len(lines), advice
+            )
         log.info("excitation channel %d allows at most %d tags at once", excitation, len(best))
         self.owner = dict(sorted((t.channel, t.id) for t in rig.tags))
         dwell = rig.dwell_s or p.dwell_s
