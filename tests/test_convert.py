@@ -258,17 +258,24 @@ def test_a_signal_while_writing_leaves_no_partial(tmp_path, signum, status):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_message_shorter_than_its_type_is_dropped_and_counted(tmp_path):
-    """After the first IMU message proves the layout, later ones pass through undecoded: a short one
-    must still be caught (as the CSI and IMU readers of the bag would not notice)."""
-    bag = tmp_path / "bag"
+def imu_bag(bag: Path, cut: frozenset[int] = frozenset(), before_1970: frozenset[int] = frozenset()) -> Path:
+    """A ROS 2 bag of 300 IMU samples at 200 Hz; those numbered in `cut` cut to 40 bytes, those in
+    `before_1970` stamped 5 s before 1970."""
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=typestore)
         for i in range(300):
-            stamp = T0_NS + i * 5_000_000
+            received = T0_NS + i * 5_000_000
+            stamp = -5_000_000_000 if i in before_1970 else received
             g = make("geometry_msgs/msg/Vector3", z=9.8)
             data = serialize(make("sensor_msgs/msg/Imu", header=header(stamp, "imu"), linear_acceleration=g))
-            writer.write(imu, stamp, data[:40] if i in (150, 151) else data)
+            writer.write(imu, received, data[:40] if i in cut else data)
+    return bag
+
+
+def test_a_message_shorter_than_its_type_is_dropped_and_counted(tmp_path):
+    """After the first IMU message proves the layout, later ones pass through undecoded: a short one
+    must still be caught (as the CSI and IMU readers of the bag would not notice)."""
+    bag = imu_bag(tmp_path / "bag", cut=frozenset({150, 151}))
     setup = tmp_path / "setup.yaml"
     setup.write_text(SETUP + "topics: {csi: null}\n")
     report = convert([bag], tmp_path / "out.mcap", setup=setup)
@@ -279,14 +286,7 @@ def test_a_message_shorter_than_its_type_is_dropped_and_counted(tmp_path):
 def test_a_stamp_before_1970_is_dropped_and_counted(tmp_path):
     """A header's sec is signed; no MCAP log time holds a negative stamp (it failed with a struct
     error, found by the contract fuzzing)."""
-    bag = tmp_path / "bag"
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=typestore)
-        for i in range(300):
-            stamp = -5_000_000_000 if i == 10 else T0_NS + i * 5_000_000
-            g = make("geometry_msgs/msg/Vector3", z=9.8)
-            data = serialize(make("sensor_msgs/msg/Imu", header=header(stamp, "imu"), linear_acceleration=g))
-            writer.write(imu, T0_NS + i * 5_000_000, data)
+    bag = imu_bag(tmp_path / "bag", before_1970=frozenset({10}))
     setup = tmp_path / "setup.yaml"
     setup.write_text(SETUP + "topics: {csi: null}\n")
     report = convert([bag], tmp_path / "out.mcap", setup=setup)
