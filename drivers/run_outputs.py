@@ -319,6 +319,11 @@ class RunOutputs(Operator):
             (ids, xy.reshape(-1, 2), cov.reshape(-1, 2, 2)),
             self.history,
             self.aoa,
+            {
+                i: (r.first_heard, r.last_heard)
+                for i, r in self.tags.items()
+                if r.first_heard is not None and r.last_heard is not None
+            },
         )
         try:
             metrics = evaluate(run, truth)

@@ -343,3 +343,12 @@ def test_two_truths_are_the_same_only_where_they_agree():
     assert same_trajectory(truth, Poses2D(stamps[::3], xy[::3], yaw[::3]))
     assert not same_trajectory(truth, Poses2D(stamps, xy + [0.05, 0.0], yaw))
     assert not same_trajectory(truth, Poses2D(stamps + 1, xy, yaw))
+
+
+def test_a_run_folder_says_when_each_tag_was_first_and_last_heard(tmp_path):
+    """From tags.csv, which the tag-error figure's lines follow (they followed the first AoA the SLAM
+    used, long after the tag was first heard)."""
+    from rover.formats.run_dir import load_run
+
+    run, _reference, _tags = make_run(tmp_path)
+    assert load_run(run).heard == {1: (1_000_000_000, 3_000_000_000), 2: (1_000_000_000, 3_000_000_000)}

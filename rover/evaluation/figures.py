@@ -38,15 +38,22 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
     to_start = start_frame(truth.trajectory, int(run.final.stamp_ns[0]))
     t0 = run.final.stamp_ns[0]
     written = []
+    plain = _plain_ticks()
 
     fig, ax = plt.subplots(figsize=(8, 5))
-    ax.plot(*to_start.apply(truth.trajectory.xy).T, color="0.6", lw=2, label="ground truth")
+    # wide and pale under the estimates, so it shows where they lie on it
+    ax.plot(*to_start.apply(truth.trajectory.xy).T, color="0.75", lw=6, label="ground truth", solid_capstyle="round")
     ax.plot(*run.live.xy.T, color="tab:orange", lw=0.8, alpha=0.7, label="live estimate")
     ax.plot(*run.final.xy.T, color="tab:blue", lw=1.2, label="final estimate")
+    localized = {int(i) for i, xy in zip(run.tag_ids, run.tag_xy, strict=True) if np.isfinite(xy).all()}
     for tag_id, (xy, nlos) in truth.tags.items():
         p = to_start.apply(np.asarray(xy)[None])[0]
         ax.plot(*p, "x", color="tab:red" if nlos else "k", ms=9, mew=2)
-        ax.annotate(f"tag {tag_id}{' (NLOS)' if nlos else ''}", p, textcoords="offset points", xytext=(6, 6))
+        never = "" if tag_id in localized else ", never localized"
+        label = f"tag {tag_id}{' (NLOS)' if nlos else ''}{never}"
+        ax.annotate(label, p, textcoords="offset points", xytext=(6, 6))
+    ax.plot([], [], "x", color="k", ms=9, mew=2, label="true tag (red: NLOS)")
+    ax.plot([], [], "o", color="tab:blue", label=f"estimated tag, {ELLIPSE_SIGMA:.0f}-sigma ellipse")
     angle = np.linspace(0, 2 * np.pi, 60)
     circle = np.stack([np.cos(angle), np.sin(angle)])
     for xy, cov in zip(run.tag_xy, run.tag_cov, strict=True):
@@ -57,6 +64,7 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
         ax.plot(*xy, "o", color="tab:blue")
         ax.plot(*ellipse, color="tab:blue", lw=1)
     ax.set_aspect("equal")
+    ax.margins(0.1)  # room for the tags' names at the edges
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(f"Trajectory and tags ({ELLIPSE_SIGMA:.0f}-sigma ellipses), world frame of the first pose")
@@ -69,9 +77,13 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
             where, _ = poses_at(truth.trajectory, poses.stamp_ns)
             error = np.linalg.norm(poses.xy - to_start.apply(where), axis=1)
             ax.plot((poses.stamp_ns - t0) / 1e9, error * 100, label=label, lw=1)
-    ax.set_xlabel("time (s)")
+    ax.set_xlabel("time since the first pose (s)")
     ax.set_ylabel("robot error (cm)")
-    ax.legend()
+    ax.set_title(
+        "Robot position error (final: each pose as it left the SLAM window; live: as estimated at its own time)",
+        fontsize=9,
+    )
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
     written.append(_save(fig, out / "robot_error.png", plt))
 
     stamps, ids, xy, observable, _cov = run.tag_history
@@ -88,15 +100,23 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
             label=f"tag {tag_id}{' (NLOS)' if nlos else ''}",
             lw=1,
         )
-        heard = aoa_stamps[aoa_ids == tag_id]
-        if len(heard):
-            ax.axvline((heard.min() - t0) / 1e9, color=line.get_color(), ls=":", lw=0.8)
-            ax.axvline((heard.max() - t0) / 1e9, color=line.get_color(), ls="--", lw=0.8)
-    ax.set_xlabel("time (s)  (dotted: first heard, dashed: last heard)")
+        first: int | None
+        last: int | None
+        if tag_id in run.heard:  # as tags.csv says
+            first, last = run.heard[tag_id]
+        else:  # a run folder from before tags.csv had the times: the AoAs the SLAM used
+            used = aoa_stamps[aoa_ids == tag_id]
+            first, last = (int(used.min()), int(used.max())) if len(used) else (None, None)
+        if first is not None and last is not None:
+            ax.axvline((first - t0) / 1e9, color=line.get_color(), ls=":", lw=0.8)
+            ax.axvline((last - t0) / 1e9, color=line.get_color(), ls="--", lw=0.8)
+    ax.set_xlabel("time since the first pose (s)  (dotted: first heard, dashed: last heard)")
     ax.set_ylabel("tag error (cm)")
     if ax.lines:  # without a localized tag the plot is empty: no log scale, no legend to warn about
         ax.set_yscale("log")
-        ax.legend(fontsize=8)
+        ax.yaxis.set_major_formatter(plain)
+        ax.yaxis.set_minor_formatter(plain)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
     written.append(_save(fig, out / "tag_error.png", plt))
 
     error, aoa_nlos, _std = aoa_errors(run, truth)
@@ -108,10 +128,17 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
                 ax.plot(e, np.arange(1, len(e) + 1) / len(e), label=f"{label} (median {np.median(e):.1f} deg)")
         ax.set_xlabel("AoA error (deg)")
         ax.set_ylabel("CDF")
-        ax.set_xlim(0, 60)
+        ax.set_xlim(0, 180)
         ax.legend()
         written.append(_save(fig, out / "aoa_cdf.png", plt))
     return written
+
+
+def _plain_ticks() -> Any:
+    """Tick labels as plain numbers (1, 2, 5, 10, 20), not powers of ten, on a log axis."""
+    from matplotlib.ticker import FuncFormatter
+
+    return FuncFormatter(lambda value, _pos: f"{value:g}" if f"{value:g}"[0] in "125" else "")
 
 
 def _save(fig: Figure, path: Path, plt: Any) -> Path:

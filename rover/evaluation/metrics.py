@@ -10,7 +10,7 @@ and apply the same transform to the tags.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -157,6 +157,8 @@ class RunRecord:
     """(stamp_ns, id, xy (n, 2), observable, covariance (n, 2, 2)) of every tag estimate published"""
     aoa: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     """(stamp_ns, tag id, robot-frame angle, reported std) of every AoA"""
+    heard: dict[int, tuple[int, int]] = field(default_factory=dict)
+    """tag id -> (first, last) stamp it was heard at, ns (tags.csv's first_heard_s, last_heard_s)"""
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,16 @@ def _read_tags(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(ids, dtype=int), np.array(xy).reshape(-1, 2), np.array(cov).reshape(-1, 2, 2)
 
 
+def _read_heard(path: Path) -> dict[int, tuple[int, int]]:
+    """tag id -> (first, last) heard, ns, from a run's tags.csv (tags without both left out)."""
+    heard = {}
+    for where, tag_id, row in tag_rows(read_text(path), str(path), RUN_TAG_COLUMNS):
+        first, last = (_optional_float(row, c, where) for c in ("first_heard_s", "last_heard_s"))
+        if math.isfinite(first) and math.isfinite(last):
+            heard[tag_id] = (round(first * 1e9), round(last * 1e9))
+    return heard
+
+
 def _optional_float(row: dict[str, str], column: str, where: str) -> float:
     """A finite number, or nan for an empty cell (a value the run never had)."""
     return csv_float(row, column, where) if row.get(column, "").strip() else math.nan
@@ -97,6 +107,7 @@ def record(
     tags: tuple[np.ndarray, np.ndarray, np.ndarray],
     history: list[tuple[int, int, float, float, bool, float, float, float, float]],
     aoa: list[tuple[int, int, float, float]],
+    heard: dict[int, tuple[int, int]] | None = None,
 ) -> RunRecord:
     h = np.array(history, dtype=object).reshape(-1, 9)
     a = np.array(aoa, dtype=object).reshape(-1, 4)
@@ -112,6 +123,7 @@ def record(
             h[:, 5:9].astype(float).reshape(-1, 2, 2),
         ),
         aoa=(a[:, 0].astype(np.int64), a[:, 1].astype(int), a[:, 2].astype(float), a[:, 3].astype(float)),
+        heard=dict(heard or {}),
     )
 
 
@@ -132,7 +144,8 @@ def load_run(run_dir: str | Path) -> RunRecord:
         else (np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2)))
     )
     history, aoa = _read_results(run_dir / "results.mcap")
-    return record(final, live, tags, history, aoa)
+    heard = _read_heard(run_dir / "tags.csv") if (run_dir / "tags.csv").exists() else {}
+    return record(final, live, tags, history, aoa, heard)
 
 
 RUN_STATUSES = ("", *get_args(RunStatus))
