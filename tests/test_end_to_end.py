@@ -155,6 +155,9 @@ def test_an_interrupted_run_finishes_its_estimates_within_2_s(tmp_path, simulate
     assert proc.returncode == 128 + sig, err
     assert took < 2.0, f"took {took:.2f} s to stop"
     assert "Traceback" not in err
+    # what was still queued at the stop is dropped by design: at most one line says so (-v lists it)
+    assert not [line for line in err.splitlines() if "DROPPED" in line], err
+    assert len([line for line in err.splitlines() if line.startswith("rover: WARNING: stopped: ")]) <= 1, err
     run = json.loads((out / "run.json").read_text())
     assert (run["status"], run["reason"]) == ("interrupted", f"stopped by {signal.Signals(sig).name}")
     files = {p.name for p in out.iterdir()}

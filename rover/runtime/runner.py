@@ -280,6 +280,9 @@ class Runner:
             for task in self.tasks:
                 if not task.thread.is_alive():
                     task.undeclare()
+            # after an interrupt what was still queued is dropped by design: one line says so, -v each
+            stopped = bool(self.interrupted)
+            dropped_at_stop = 0
             for task in self.tasks:
                 queue_line = ""
                 if isinstance(task, OperatorTask):
@@ -288,8 +291,15 @@ class Runner:
                     if over := sum(task.inbox.overflowed.values()):
                         queue_line += f" ({over} from other hosts over the bound)"
                 line = task.stats.line(task.name) + queue_line
-                log.log(logging.WARNING if task.stats.dropped else logging.INFO, "%s", line)
+                loud = task.stats.dropped and not stopped
+                dropped_at_stop += sum(task.stats.dropped.values()) if stopped else 0
+                log.log(logging.WARNING if loud else logging.INFO, "%s", line)
                 report_drops(task)
+            if dropped_at_stop:
+                log.warning(
+                    "stopped: %d message(s) still queued or in flight were dropped (-v lists them per operator)",
+                    dropped_at_stop,
+                )
         failed = next((t for t in self.tasks if t.error is not None), None)
         if failed is not None:
             exc = failed.error
