@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -51,26 +52,25 @@ def add_set(p: argparse.ArgumentParser) -> None:
     )
 
 
-def degrees(text: str) -> float:
-    """--angle-deg: a finite number of degrees."""
+def _number(text: str, ok: Callable[[float], bool], wanted: str) -> float:
+    """An argument that is a number `ok` accepts; argparse's error naming `wanted` otherwise."""
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"a number of degrees, got {text!r}")
+    if not ok(value):
+        raise argparse.ArgumentTypeError(f"{wanted}, got {text!r}")
     return value
+
+
+def degrees(text: str) -> float:
+    """--angle-deg: a finite number of degrees."""
+    return _number(text, math.isfinite, "a number of degrees")
 
 
 def seconds(text: str) -> float:
     """--start/--end: a number of seconds from 0 to 2**31 (a ROS 2 stamp's range)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0 <= value < 2**31:
-        raise argparse.ArgumentTypeError(f"seconds from 0 to 2**31, got {text!r}")
-    return value
+    return _number(text, lambda v: 0 <= v < 2**31, "seconds from 0 to 2**31")
 
 
 def burst(text: str) -> int:

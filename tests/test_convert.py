@@ -272,26 +272,25 @@ def imu_bag(bag: Path, cut: frozenset[int] = frozenset(), before_1970: frozenset
     return bag
 
 
-def test_a_message_shorter_than_its_type_is_dropped_and_counted(tmp_path):
-    """After the first IMU message proves the layout, later ones pass through undecoded: a short one
-    must still be caught (as the CSI and IMU readers of the bag would not notice)."""
-    bag = imu_bag(tmp_path / "bag", cut=frozenset({150, 151}))
+@pytest.mark.parametrize(
+    ("faults", "reason", "dropped"),
+    [
+        # after the first IMU message proves the layout, later ones pass through undecoded: a short one
+        # must still be caught (as the CSI and IMU readers of the bag would not notice)
+        ({"cut": frozenset({150, 151})}, "imu: undecodable", 2),
+        # a header's sec is signed; no MCAP log time holds a negative stamp (it failed with a struct
+        # error, found by the contract fuzzing)
+        ({"before_1970": frozenset({10})}, "imu: stamp before 1970", 1),
+    ],
+    ids=["shorter than its type", "stamped before 1970"],
+)
+def test_a_message_that_cannot_be_converted_is_dropped_and_counted(tmp_path, faults, reason, dropped):
+    bag = imu_bag(tmp_path / "bag", **faults)
     setup = tmp_path / "setup.yaml"
     setup.write_text(SETUP + "topics: {csi: null}\n")
     report = convert([bag], tmp_path / "out.mcap", setup=setup)
-    assert report.dropped == {"imu: undecodable": 2}
-    assert report.written["/imu/data"] == 298
-
-
-def test_a_stamp_before_1970_is_dropped_and_counted(tmp_path):
-    """A header's sec is signed; no MCAP log time holds a negative stamp (it failed with a struct
-    error, found by the contract fuzzing)."""
-    bag = imu_bag(tmp_path / "bag", before_1970=frozenset({10}))
-    setup = tmp_path / "setup.yaml"
-    setup.write_text(SETUP + "topics: {csi: null}\n")
-    report = convert([bag], tmp_path / "out.mcap", setup=setup)
-    assert report.dropped == {"imu: stamp before 1970": 1}
-    assert report.written["/imu/data"] == 299
+    assert report.dropped == {reason: dropped}
+    assert report.written["/imu/data"] == 300 - dropped
 
 
 def test_an_empty_window_is_refused_and_the_truth_is_clipped_to_the_window(tmp_path):

@@ -1,4 +1,4 @@
-"""The window's Gauss-Newton information at the estimate, for the covariances it reports: dense, as
+"""The window's Gauss-Newton information at the estimate, and the covariances it reports from it: dense, as
 a window has a few hundred states, where building a sparse matrix costs more than factorizing the
 dense one."""
 
@@ -46,3 +46,27 @@ def window_information(
     rows[np.arange(shape.rows)[:, None], EPOCH_STATES * epoch[:, None] + np.arange(2)] = coeff[:, :2]
     rows[:, shape.tag_states] = coeff[:, 2:]
     return info + rows.T @ rows
+
+
+def covariances(info: np.ndarray, shape: Shape) -> tuple[np.ndarray, np.ndarray]:
+    """From the window's information: each tag's 2x2 covariance (tags, 2, 2) and the shared states'
+    (infinite where the information is singular)."""
+    nt, nb = shape.tags, shape.biases
+    e = shape.tag_states.start
+    rhs = np.zeros((info.shape[0], 2 * nt + nb))
+    rhs[e:, :] = np.eye(2 * nt + nb)
+    try:
+        cov = np.linalg.solve(info, rhs)[e:]
+    except np.linalg.LinAlgError:
+        cov = np.full((2 * nt + nb, 2 * nt + nb), np.inf)
+    tags = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
+    return tags, cov[2 * nt :, 2 * nt :]
+
+
+def largest_std_m(tag_covariance: np.ndarray) -> np.ndarray:
+    """Each tag's largest standard deviation (m), along its covariance's major axis."""
+    if len(tag_covariance) == 0:
+        return np.zeros(0)
+    cov = np.nan_to_num(tag_covariance, nan=1e12, posinf=1e12)
+    worst = np.linalg.eigvalsh(0.5 * (cov + cov.transpose(0, 2, 1)))[:, -1]
+    return np.sqrt(np.maximum(worst, 0))

@@ -3,6 +3,7 @@ the window into it (Schur complement, in covariance form)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,13 @@ class Prior:
     info: np.ndarray
     mean: np.ndarray
     grad: np.ndarray
+
+    def relaxed(self, states: slice, factor: float) -> Prior:
+        """The prior with `factor` of its information on `states` kept (a tag whose bearings keep
+        disagreeing with it: the prior of a tag first seen through wrong-path bearings would hold it)."""
+        keep = np.ones(len(self.mean))
+        keep[states] = math.sqrt(factor)
+        return Prior(self.info * np.outer(keep, keep), self.mean, self.grad * keep)
 
 
 @dataclass(frozen=True)

@@ -18,10 +18,8 @@ or, once every tag in use is localized, from the last estimate alone (the convex
 to start tags that are not: one solve an update instead of two, and the same estimates).
 The distances in the weights have a floor (no tag is closer than `min_range_m` to the antennas).
 
-The window's parts: `settings` (WindowSettings), `layout` (where each state sits), `factors` (one
-measurement model per sensor), `candidates` (the max-mixture choice), `marginalization` (the prior),
-`tag_finder` (tags waiting for the search), `window_program` (the convex program); this module
-holds the epochs and orchestrates an update.
+This module holds the epochs and orchestrates an update; its parts (layout, factors, candidates,
+marginalization, ...) are listed in docs/slam.md.
 """
 
 from __future__ import annotations
@@ -46,7 +44,7 @@ from rover.operators.slam.factors import (
     velocity_terms,
     wheel_rows,
 )
-from rover.operators.slam.information import window_information
+from rover.operators.slam.information import covariances, largest_std_m, window_information
 from rover.operators.slam.layout import (
     ACCEL_BIAS_STATES,
     EPOCH_STATES,
@@ -557,42 +555,24 @@ class SlidingWindow:
             elif mine.any():
                 self.disagreement[t] = 0
             if self.disagreement.get(t, 0) >= s.reset_updates:
-                p = self._prior
-                keep = np.ones(len(p.mean))
-                keep[prior_tag(t)] = math.sqrt(s.reset_factor)
-                self.prior = Prior(p.info * np.outer(keep, keep), p.mean, p.grad * keep)
+                self.prior = self._prior.relaxed(prior_tag(t), s.reset_factor)
                 self.disagreement[t] = 0
                 self.resets += 1
 
-    def _information(self, epoch, tag, residual, jb, filled) -> np.ndarray:
-        """The Gauss-Newton information of the window at the estimate (Huber rows IRLS-weighted)."""
+    def _covariances(self, epoch, tag, residual, jb, filled) -> None:
+        """The tags' and shared states' covariances from the Gauss-Newton information at the estimate
+        (Huber rows IRLS-weighted)."""
         w = np.where(filled, huber_weight(residual, self.settings.huber_sigma), 0.0)
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
-        return window_information(self.shape, self._prior.info, self.edges, self.epochs, epoch, coeff)
-
-    def _covariances(self, epoch, tag, residual, jb, filled) -> None:
-        nt, nb = len(self.tag_ids), self.biases
-        e = self.shape.tag_states.start
-        info = self._information(epoch, tag, residual, jb, filled)
-        rhs = np.zeros((info.shape[0], 2 * nt + nb))
-        rhs[e:, :] = np.eye(2 * nt + nb)
-        try:
-            cov = np.linalg.solve(info, rhs)[e:]
-        except np.linalg.LinAlgError:
-            cov = np.full((2 * nt + nb, 2 * nt + nb), np.inf)
-        self.tag_covariance = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
-        self.bias_covariance = cov[2 * nt :, 2 * nt :]
+        info = window_information(self.shape, self._prior.info, self.edges, self.epochs, epoch, coeff)
+        self.tag_covariance, self.bias_covariance = covariances(info, self.shape)
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`); worked
         out once per covariance."""
         if self.judged is not None and self.judged[0] is self.tag_covariance:
             return self.judged[1].copy()
-        if len(self.tag_covariance) == 0:
-            return np.zeros(0, bool)
-        cov = np.nan_to_num(self.tag_covariance, nan=1e12, posinf=1e12)
-        worst = np.linalg.eigvalsh(0.5 * (cov + cov.transpose(0, 2, 1)))[:, -1]
-        result = np.sqrt(np.maximum(worst, 0)) <= self.settings.observable_std_m
+        result = largest_std_m(self.tag_covariance) <= self.settings.observable_std_m
         self.judged = (self.tag_covariance, result)
         return result.copy()
 
