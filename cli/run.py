@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         pipeline = load_with_view(path, BUILTINS, overrides(args), args.view, args.host)
     else:
         pipeline = load_and_check(path, BUILTINS, overrides(args))
-    status = runner.run(pipeline, args.host)
+    status = runner.run(pipeline, args.host, progress=not args.quiet)
     folders = [
         Path(str(node.spec.params.get("out", "rover-out")))
         for node in pipeline.nodes.values()

@@ -66,7 +66,7 @@ class DatasetReplay(Source):
             if port not in self.outputs or port == "setup":
                 raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, imu, odom)")
         self._port_of = {topic: port for port, topic in p.topics.items()}
-        self._setup_yaml, self._channels, self._total = self._inspect()
+        self._setup_yaml, self._channels, self._span = self._inspect()
         self._done = 0
         if p.setup:
             try:
@@ -77,15 +77,15 @@ class DatasetReplay(Source):
                 log.warning("dataset_replay: %s replaces the rig description stored in %s", p.setup, self.path)
             self._setup_yaml = rig.text
 
-    def _inspect(self) -> tuple[str | None, dict[str, str], int]:
-        """Read the summary: which wanted topics exist with the right types, and the rig description."""
+    def _inspect(self) -> tuple[str | None, dict[str, str], tuple[int, int] | None]:
+        """Read the summary: which wanted topics exist with the right types, the rig description,
+        and the span of log time the file covers (None when it holds none of the wanted topics)."""
         with BagReader(self.path, READ_FAILURE) as bag:
             summary = bag.summary()
             metadata = bag.metadata()
         if summary is None:
             raise BadInput(f"{self.path}: MCAP file has no summary section (was it closed properly?)")
         found: dict[str, str] = {}
-        total = 0
         for channel in summary.channels:
             port = self._port_of.get(channel.topic)
             if port is None:
@@ -95,12 +95,15 @@ class DatasetReplay(Source):
                 got = f"{shown(channel.schema) if channel.schema else 'no schema'} ({shown(channel.encoding)})"
                 raise BadInput(f"{self.path}: topic {channel.topic} is {got}, expected {wanted} (cdr)")
             found[channel.topic] = port
-            total += channel.count
         setup = metadata.get(SETUP_METADATA, {}).get("yaml")
-        return setup, found, total
+        stats = summary.statistics
+        span = None
+        if found and stats is not None and stats.message_count:
+            span = (stats.start_ns, stats.end_ns)
+        return setup, found, span
 
-    def progress(self) -> tuple[int, int] | None:
-        return (self._done, self._total) if self._total else None
+    def span_ns(self) -> tuple[int, int] | None:
+        return self._span
 
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         speed = self.params.speed

@@ -286,6 +286,7 @@ class Source(Operator):
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         raise NotImplementedError
 
-    def progress(self) -> tuple[int, int] | None:
-        """(items done, items in all) for a progress bar, when the source knows its length."""
+    def span_ns(self) -> tuple[int, int] | None:
+        """(first, last) event time this source will emit, when it knows it before it starts (a
+        replay): the run's progress is the event time its last stages reach within this span."""
         return None

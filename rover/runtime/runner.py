@@ -13,6 +13,7 @@ from the others, in rover/runtime/host_protocol.py.
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import threading
 import time
@@ -30,7 +31,7 @@ from rover.runtime.delivery import Fanout
 from rover.runtime.host_protocol import HostProtocol
 from rover.runtime.hosts import attribute_to_hubs, describe_loss
 from rover.runtime.inbox import Policy
-from rover.runtime.progress import ProgressBar
+from rover.runtime.progress import RunProgress
 from rover.runtime.status import HostStatus
 from rover.runtime.tasks import POLL_S, OperatorTask, SourceTask, Task, described, report_drops
 from rover.security.acl import access_control
@@ -57,9 +58,11 @@ _SignalHandler = Callable[[int, FrameType | None], Any] | int | None
 class Runner:
     """Runs the operators of one host (or all of them) until end of stream or an interrupt."""
 
-    def __init__(self, pipeline: Pipeline, host: str | None = None):
+    def __init__(self, pipeline: Pipeline, host: str | None = None, progress: bool = True):
         self.pipeline = pipeline
         self.host = host
+        self.progress = progress
+        """whether to show the run's progress on stderr (`rover -q` does not)"""
         self.distributed = host is not None and bool(pipeline.spec.hosts)
         self.nodes = [n for n in pipeline.nodes.values() if not self.distributed or n.spec.host == host]
         self.stop = threading.Event()
@@ -332,6 +335,12 @@ class Runner:
         """This host's snapshot for `rover status`."""
         return self.hosts.status()
 
+    def _reached(self) -> float:
+        """Event time this host's last stages (those no task here feeds) have finished with."""
+        fed = {w.source for t in self.tasks for w in t.node.spec.inputs.values()}
+        last = [t for t in self.tasks if t.name not in fed]
+        return min((math.inf if t.done.is_set() else t.reached_ns) for t in last) if last else math.inf
+
     def _start_and_wait(self) -> None:
         for task in self.tasks:
             task.thread.start()
@@ -339,7 +348,8 @@ class Runner:
 
     def _wait_tasks(self) -> None:
         deadline = None
-        with ProgressBar([t.op for t in self.tasks if isinstance(t, SourceTask)]) as bar:
+        sources = [t.op for t in self.tasks if isinstance(t, SourceTask)] if self.progress else []
+        with RunProgress(sources, self._reached) as bar:
             while not all(t.done.is_set() for t in self.tasks):
                 if self.stop.is_set() and deadline is None:
                     deadline = (self.stopped_at or time.monotonic()) + DRAIN_S
@@ -351,8 +361,9 @@ class Runner:
                 time.sleep(POLL_S)
 
 
-def run(pipeline: Pipeline, host: str | None = None) -> int:
-    """Run a checked pipeline (all of it, or one host's share); return the exit status."""
+def run(pipeline: Pipeline, host: str | None = None, progress: bool = True) -> int:
+    """Run a checked pipeline (all of it, or one host's share); return the exit status. `progress`:
+    show how far it has got on stderr."""
     if host is not None and pipeline.spec.hosts and host not in pipeline.spec.hosts:
         raise BadInput(
             f"{pipeline.spec.file}: --host {host!r} is not declared under hosts: ({', '.join(pipeline.spec.hosts)})"
@@ -363,4 +374,4 @@ def run(pipeline: Pipeline, host: str | None = None) -> int:
             log.warning("%s", line)
         if problems:
             raise SpecError(problems)
-    return Runner(pipeline, host).run()
+    return Runner(pipeline, host, progress).run()

@@ -162,6 +162,9 @@ class Task:
         """stamp of the last message handled (for `rover status`)"""
         self.input_ns: int | None = None
         """latest stamp received on any input"""
+        self.reached_ns: float = -INF
+        """event time this task has finished with: nothing it handles later is stamped before it
+        (inf once its inputs have ended), for the run's progress"""
         self.done = threading.Event()
         self.ended_cut = False
         """whether its outputs ended cut short (decided once, when the task ended)"""
@@ -278,6 +281,7 @@ class SourceTask(Task):
                     out.promise(clock)
                 self.publish((item._replace(stamp_ns=stamp),), clock)
             self.advance(clock)
+            self.reached_ns = clock
             if self.stop.is_set():
                 break
         self.handle(self.op.on_end, clock)
@@ -410,7 +414,8 @@ class OperatorTask(Task):
                     return
                 self.handle(functools.partial(op.on_input, port, msg, stamp), stamp)
                 self.handled_ns = stamp
-            self.advance(merger.safe_time() - op.lateness_s * 1e9)
+            self.reached_ns = merger.safe_time()
+            self.advance(self.reached_ns - op.lateness_s * 1e9)
         self.handle(op.on_end, self.last_stamp())
 
     def last_stamp(self) -> int:
