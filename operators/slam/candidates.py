@@ -1,13 +1,21 @@
-"""The max-mixture choice among a bearing's candidates (one per chain phase-jump combination): each
-bearing of a tag in use takes the candidate likeliest at the current estimate, weighted by how often
-its tag's recent bearings chose that combination (`JumpMemory`).
+"""Which of a bearing's candidates (one per chain phase-jump combination) each bearing uses: a hidden
+Markov model per tag over its bearings in time order.
 
-The weights are a switch prior, not a lock: a combination its last LOCK_BEARINGS bearings all chose
-is about 30 times likelier than another (3.4 nats, a candidate 2.6 standard deviations closer), so a
-jump state held for the run dominates, yet a chain that steps at some moment and stays so is
-followed as soon as its bearings say so. A hard lock onto the held combination, as there was, kept
-every bearing after such a step on the wrong candidate until the recent choices had turned: on
-`paper` with 3 steps a minute it published tags 2 m off at 20-27 standard deviations."""
+The chains' jump state changes rarely, and a change is an event, not noise: a chain steps by pi at
+some moment and stays so (CSI Tool issues #23, #295, #113). So the state is a sequence per tag (its
+channel), and the window's bearings of a tag are decoded together (Viterbi): a switch costs
+-log(p / (C - 1)) once, staying -log(1 - p), with p the tag's switch rate learned from the bearings
+that left the window (`JumpMemory`); the window starts from the state its last bearing left in. A
+step is then followed as soon as two or three bearings after it agree (the bearings before it keep
+the old state), while one stray bearing does not flip it; a tag whose combination is drawn afresh at
+every dwell learns a high p and chooses freely.
+
+Each bearing's evidence for a combination is its candidate's likelihood at the estimate with the
+burst's own std (the window's are scaled up for the errors consecutive bursts share, which weakens
+each bearing in the fit, not the odds between its candidates), robust to multipath outliers: a
+mixture of that Gaussian and a uniform share OUTLIER_SHARE. The state prior was a frequency weight
+in units of the scaled stds: after a step on `paper` (3 steps a minute) it kept a tag on a candidate
+75 deg off for 20 s and published it 2 m away at 13.6 sigma."""
 
 from __future__ import annotations
 
@@ -18,50 +26,54 @@ import numpy as np
 
 from rover.geometry import wrap_angle
 
-SELECT_CAP_SIGMA = 3.0
-"""in the max-mixture, a candidate further off than this many stds is as unlikely as any other"""
+OUTLIER_SHARE = 0.1
+"""share of bearings whose candidate at the true combination is still far off (multipath)"""
+HISTORY_BEARINGS = 200
+"""bearings per tag the switch rate is learned from"""
+PRIOR_SWITCHES, PRIOR_TRANSITIONS = 1.0, 30.0
+"""the switch rate's prior: one switch in 30 bearings, outweighed by a few minutes of evidence"""
 LOCK_BEARINGS = 30
 LOCK_SHARE = 0.75
-"""a tag holds a combination that is the choice of this share of its last LOCK_BEARINGS bearings (a
-jump at every retune spreads them over all, a quarter each at 5 GHz)"""
+"""a tag holds a combination that is the choice of this share of its last LOCK_BEARINGS bearings
+(reported with the tag; a jump at every retune spreads them over all, a quarter each at 5 GHz)"""
 
 
 @dataclass
 class JumpMemory:
-    """Per tag slot, the combinations of its last LOCK_BEARINGS free choices (bearings that left the
-    window, and the search's evidence): the mixture's weights and the lock."""
+    """Per tag slot, the combinations its last HISTORY_BEARINGS bearings used when they left the
+    window (and the search's evidence): the state a window starts from, and the switch rate."""
 
     recent: dict[int, list[int]] = field(default_factory=dict)
 
     def learn(self, tag_slot: int, jump: int) -> None:
-        """A bearing of the tag left the window having freely chosen combination `jump`."""
+        """A bearing of the tag left the window using combination `jump`."""
         recent = self.recent.setdefault(tag_slot, [])
         recent.append(jump)
-        del recent[:-LOCK_BEARINGS]
+        del recent[:-HISTORY_BEARINGS]
 
     def start(self, tag_slot: int, jumps: np.ndarray) -> None:
-        """The first counts of a tag the search found: the combinations of its inlier bearings."""
-        self.recent[tag_slot] = [int(j) for j in jumps[jumps >= 0][-LOCK_BEARINGS:]]
+        """The first history of a tag the search found: the combinations of its inlier bearings."""
+        self.recent[tag_slot] = [int(j) for j in jumps[jumps >= 0][-HISTORY_BEARINGS:]]
 
     def locked(self, tag_slot: int) -> int | None:
         """The jump combination a tag's chains hold (the choice of LOCK_SHARE of its last LOCK_BEARINGS
-        bearings), if any: the discrete state a jump once per run leaves, reported with the tag."""
-        recent = self.recent.get(tag_slot, [])
+        bearings), if any."""
+        recent = self.recent.get(tag_slot, [])[-LOCK_BEARINGS:]
         if len(recent) < LOCK_BEARINGS:
             return None
         top = max(set(recent), key=recent.count)
         return top if recent.count(top) >= LOCK_SHARE * len(recent) else None
 
-    def log_weights(self, tag: np.ndarray, jumps: np.ndarray, tags: int) -> np.ndarray:
-        """log of each candidate's combination weight for its tag: its count among the tag's last
-        LOCK_BEARINGS free choices plus one, normalized (recent only, so a later jump can be followed)."""
-        combinations = max(int(jumps.max()) + 1, 1)
-        table = np.zeros((tags, combinations))  # per tag slot and combination
-        for t in np.unique(tag):
-            recent = np.asarray(self.recent.get(int(t), []), dtype=int)
-            counts = np.bincount(recent[recent < combinations], minlength=combinations)
-            table[t] = np.log((counts + 1.0) / (len(recent) + combinations))
-        return np.where(jumps >= 0, table[tag[:, None], np.maximum(jumps, 0)], -math.log(combinations))
+    def last(self, tag_slot: int) -> int:
+        """The combination the tag's last bearing to leave the window used (-1: none yet)."""
+        recent = self.recent.get(tag_slot)
+        return recent[-1] if recent else -1
+
+    def switch_rate(self, tag_slot: int) -> float:
+        """The chance that the next bearing's combination differs from the last one's."""
+        recent = np.asarray(self.recent.get(tag_slot, []), dtype=int)
+        switches = float(np.count_nonzero(np.diff(recent))) if len(recent) > 1 else 0.0
+        return (switches + PRIOR_SWITCHES) / (max(len(recent) - 1, 0) + PRIOR_TRANSITIONS)
 
 
 @dataclass(frozen=True)
@@ -71,6 +83,17 @@ class Choice:
 
     choice: np.ndarray
     doubt: np.ndarray
+
+
+def _evidence(predicted: np.ndarray, angles: np.ndarray, stds: np.ndarray) -> np.ndarray:
+    """-log likelihood of each candidate (rows, K) at the predicted bearing: a Gaussian of its std
+    mixed with a uniform outlier share (inf where there is no candidate)."""
+    r = wrap_angle(predicted[:, None] - angles) / stds
+    there = np.isfinite(r)
+    r, stds = np.where(there, r, 0.0), np.where(there, stds, 1.0)
+    inlier = math.log1p(-OUTLIER_SHARE) - 0.5 * r**2 - np.log(stds) - 0.5 * math.log(2 * math.pi)
+    cost = -np.logaddexp(inlier, math.log(OUTLIER_SHARE / (2 * math.pi)))
+    return np.where(there, cost, np.inf)
 
 
 def choose(
@@ -84,26 +107,100 @@ def choose(
     aoa_std_scale: float,
     kept: Choice,
 ) -> Choice:
-    """Max-mixture over stacked bearings: robot-to-tag vectors `offset` at the estimate, each
-    bearing's tag slot, candidates (rows, K; NaN-padded) with their window stds and combinations.
-    Bearings of tags not in use keep what `kept` says."""
-    predicted = np.arctan2(offset[:, 1], offset[:, 0])
-    r = wrap_angle(predicted[:, None] - angles) / stds
-    prior = np.log(stds) - memory.log_weights(tag, jumps, len(active))  # a wide candidate, a rare combination
-    cost = 0.5 * np.minimum(r**2, SELECT_CAP_SIGMA**2) + prior
-    cost = np.where(np.isfinite(r), cost, np.inf)
-    choice = np.argmin(cost, axis=1)
-    rows = np.arange(len(choice))
-    # odds of each candidate against the chosen one, uncapped and with the bursts' own stds (the
-    # window's are scaled up for the errors consecutive bursts share, which is no doubt about a choice)
-    raw = r * aoa_std_scale
-    likely = np.where(np.isfinite(raw), 0.5 * raw**2 + prior, np.inf)
-    # normalized against each row's most likely candidate, so no exponent overflows (inf / inf)
-    low = likely.min(axis=1, keepdims=True)
-    finite = np.isfinite(likely)
-    chance = np.exp(-(np.where(finite, likely, 0.0) - np.where(np.isfinite(low), low, 0.0))) * finite
+    """The candidates of stacked bearings (rows in time order): robot-to-tag vectors `offset` at the
+    estimate, each bearing's tag slot, candidates (rows, K; NaN-padded) with their window stds and
+    combinations. Bearings of tags not in use keep what `kept` says."""
+    use = np.array(active, bool)[tag] if len(tag) else np.zeros(0, bool)
+    rows = np.flatnonzero(use)
+    if len(rows) == 0:
+        return kept
+    predicted = np.arctan2(offset[rows, 1], offset[rows, 0])
+    cost = _evidence(predicted, angles[rows], stds[rows] / aoa_std_scale)
+    cand_jumps = jumps[rows]
+    slots = tag[rows]
+    lasts = {int(t): memory.last(int(t)) for t in np.unique(slots)}
+    combos = max(int(cand_jumps.max()) + 1, max(lasts.values()) + 1, 1)
+    # per bearing and combination: its candidate's cost; a combination with no candidate of its own
+    # (merged into one of the same direction, or no estimate) counts as an outlier
+    outlier = -math.log(OUTLIER_SHARE / (2 * math.pi))
+    per_combo = np.full((len(rows), combos), np.inf)
+    has = (cand_jumps >= 0) & np.isfinite(cost)
+    at_row, at_k = np.nonzero(has)
+    np.minimum.at(per_combo, (at_row, cand_jumps[at_row, at_k]), cost[at_row, at_k])
+    per_combo = np.where(np.isfinite(per_combo), per_combo, outlier)
+    state, posterior = _decode(per_combo, slots, lasts, memory)
+    # the candidate of the decoded combination (or the row's best, when it has none)
+    match = has & (cand_jumps == state[:, None])
+    pick = np.where(match.any(axis=1), match.argmax(axis=1), np.argmin(cost, axis=1))
+    chance = np.where(has, posterior[np.arange(len(rows))[:, None], np.maximum(cand_jumps, 0)], 0.0)
     chance /= np.maximum(chance.sum(axis=1, keepdims=True), np.finfo(float).tiny)
-    apart = np.where(np.isfinite(angles), wrap_angle(angles - angles[rows, choice][:, None]), 0.0)
-    doubt = np.sum(chance * apart**2, axis=1)
-    use = np.array(active, bool)[tag]
-    return Choice(np.where(use, choice, kept.choice), np.where(use, doubt, kept.doubt))
+    mine = angles[rows, pick]
+    apart = np.where(has, wrap_angle(angles[rows] - mine[:, None]), 0.0)
+    choice, doubt = kept.choice.copy(), kept.doubt.copy()
+    choice[rows] = pick
+    doubt[rows] = np.sum(chance * apart**2, axis=1)
+    return Choice(choice, doubt)
+
+
+def _decode(
+    cost: np.ndarray, slots: np.ndarray, lasts: dict[int, int], memory: JumpMemory
+) -> tuple[np.ndarray, np.ndarray]:
+    """Viterbi path and posterior marginals of each tag's combination over its bearings (rows in
+    time order, `cost` (rows, C) -log likelihoods), all tags at once: per row its state and (rows, C)
+    probabilities."""
+    n, combos = cost.shape
+    order = np.argsort(slots, kind="stable")
+    tags, starts, counts = np.unique(slots[order], return_index=True, return_counts=True)
+    which = np.repeat(np.arange(len(tags)), counts)
+    pos = np.arange(n) - np.repeat(starts, counts)
+    length = int(counts.max())
+    padded = np.zeros((len(tags), length, combos))
+    padded[which, pos] = cost[order]
+    valid = np.arange(length)[None, :] < counts[:, None]
+    rate = np.array([memory.switch_rate(int(t)) for t in tags])
+    stay = -np.log1p(-np.minimum(rate, 0.999))[:, None]
+    switch = -np.log(rate / max(combos - 1, 1))[:, None]
+    last = np.array([lasts[int(t)] for t in tags])
+    start = np.where(last[:, None] < 0, 0.0, np.where(np.arange(combos)[None, :] == last[:, None], stay, switch))
+    eye = np.eye(combos, dtype=bool)
+    move = np.where(eye[None], stay[:, :, None], switch[:, :, None])  # (tags, from, to)
+    # Viterbi
+    best = start + padded[:, 0]
+    back = np.zeros((len(tags), length, combos), dtype=int)
+    for k in range(1, length):
+        through = best[:, :, None] + move
+        came = np.argmin(through, axis=1)
+        step = np.take_along_axis(through, came[:, None, :], axis=1)[:, 0] + padded[:, k]
+        best = np.where(valid[:, k, None], step, best)
+        back[:, k] = came
+    path = np.zeros((len(tags), length), dtype=int)
+    s = np.argmin(best, axis=1)
+    for k in range(length - 1, -1, -1):
+        live = valid[:, k]
+        path[:, k] = s
+        s = np.where(live & (k > 0), back[np.arange(len(tags)), k, s], s)
+    # forward-backward, in log probabilities
+    log_move = -move
+    fwd = np.zeros((len(tags), length, combos))
+    fwd[:, 0] = -(start + padded[:, 0])
+    for k in range(1, length):
+        step = _logsumexp(fwd[:, k - 1, :, None] + log_move, axis=1) - padded[:, k]
+        fwd[:, k] = np.where(valid[:, k, None], step, fwd[:, k - 1])
+    bwd = np.zeros((len(tags), length, combos))
+    for k in range(length - 2, -1, -1):
+        step = _logsumexp(log_move + (bwd[:, k + 1] - padded[:, k + 1])[:, None, :], axis=2)
+        bwd[:, k] = np.where(valid[:, k + 1, None], step, 0.0)
+    joint = fwd + bwd
+    joint -= joint.max(axis=2, keepdims=True)
+    post = np.exp(joint)
+    post /= post.sum(axis=2, keepdims=True)
+    state = np.empty(n, dtype=int)
+    posterior = np.empty((n, combos))
+    state[order] = path[which, pos]
+    posterior[order] = post[which, pos]
+    return state, posterior
+
+
+def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
+    top = a.max(axis=axis, keepdims=True)
+    return np.squeeze(top, axis=axis) + np.log(np.sum(np.exp(a - top), axis=axis))

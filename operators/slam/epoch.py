@@ -25,7 +25,7 @@ class Epoch:
     candidate_jumps: np.ndarray
     """the jump combination each candidate assumes (-1: padding or unknown)"""
     choice: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    """the candidate each bearing uses now (max-mixture: the likeliest at the current estimate)"""
+    """the candidate each bearing uses now (candidates.choose at the current estimate)"""
     messages: list[Any] = field(default_factory=list)
     """what the bearings came from, handed back with the final choice (opaque here)"""
     doubt: np.ndarray = field(default_factory=lambda: np.zeros(0))

@@ -117,7 +117,7 @@ class SlidingWindow:
     finder: TagFinder = field(default_factory=TagFinder)
     """the tags waiting for the search, and what it found"""
     jumps: JumpMemory = field(default_factory=JumpMemory)
-    """per tag slot: the jump combinations of its recent bearings (the max-mixture's switch prior)"""
+    """per tag slot: the jump combinations of its recent bearings (where a window starts, the switch rate)"""
     left: list[Epoch] = field(default_factory=list)
     """epochs that left the window since the owner last emptied this list (their choices are final)"""
     stacked: Bearings | None = field(default=None, repr=False)
@@ -298,8 +298,8 @@ class SlidingWindow:
         return np.repeat(np.arange(shape.epochs), shape.slots), tag, bearing, std, (tag >= 0) & active[tag]
 
     def _select(self, x: np.ndarray) -> None:
-        """Max-mixture: each bearing of a tag in use takes the candidate likeliest at the estimate x,
-        the learned weights of the jump combinations included (a once-per-run combination soon dominates)."""
+        """Each bearing of a tag in use takes its candidate at the estimate x: the tag's jump state
+        decoded over its bearings (candidates.choose)."""
         if not any(self.active) or not self.epochs:
             return
         b = self._bearings()
@@ -355,7 +355,7 @@ class SlidingWindow:
 
     def _activate(self, t: int, found: Found, info: np.ndarray, jumps: np.ndarray) -> None:
         """Put a found tag in use: at its position, with `info` as its prior, and its bearings' jump
-        combinations as the first counts of its mixture weights."""
+        combinations as the first history of its jump state."""
         self.x[self.shape.tag(t)] = found.position
         p = self._prior
         at = np.arange(p.info.shape[0])[prior_tag(t)]
