@@ -41,6 +41,8 @@ def run(seed: int, regime: str, work: Path) -> dict[str, Any]:
         "aoa_los_median_deg": m.get("aoa", {}).get("los", {}).get("median_deg"),
         "aoa_nlos_median_deg": m.get("aoa", {}).get("nlos", {}).get("median_deg"),
         "heard": len(tags),
+        "localized_share": sum(1 for t in tags.values() if isinstance(t, dict) and t.get("localized"))
+        / max(len(tags), 1),
         "los_beyond_3_sigma": published.get("los", {}).get("beyond_3_sigma"),
         "nlos_beyond_3_sigma": published.get("nlos", {}).get("beyond_3_sigma"),
     }
