@@ -162,45 +162,39 @@ def _decode(
     switch = -np.log(rate / max(combos - 1, 1))[:, None]
     last = np.array([lasts[int(t)] for t in tags])
     start = np.where(last[:, None] < 0, 0.0, np.where(np.arange(combos)[None, :] == last[:, None], stay, switch))
-    eye = np.eye(combos, dtype=bool)
-    move = np.where(eye[None], stay[:, :, None], switch[:, :, None])  # (tags, from, to)
-    # Viterbi
+    # Viterbi: from each combination, stay or come from the best of all at the switch cost
     best = start + padded[:, 0]
     back = np.zeros((len(tags), length, combos), dtype=int)
     for k in range(1, length):
-        through = best[:, :, None] + move
-        came = np.argmin(through, axis=1)
-        step = np.take_along_axis(through, came[:, None, :], axis=1)[:, 0] + padded[:, k]
+        leader = np.argmin(best, axis=1)[:, None]
+        kept_cost, moved_cost = best + stay, np.min(best, axis=1, keepdims=True) + switch
+        step = np.minimum(kept_cost, moved_cost) + padded[:, k]
+        back[:, k] = np.where(kept_cost <= moved_cost, np.arange(combos)[None, :], leader)
         best = np.where(valid[:, k, None], step, best)
-        back[:, k] = came
     path = np.zeros((len(tags), length), dtype=int)
     s = np.argmin(best, axis=1)
     for k in range(length - 1, -1, -1):
-        live = valid[:, k]
         path[:, k] = s
-        s = np.where(live & (k > 0), back[np.arange(len(tags)), k, s], s)
-    # forward-backward, in log probabilities
-    log_move = -move
-    fwd = np.zeros((len(tags), length, combos))
-    fwd[:, 0] = -(start + padded[:, 0])
+        s = np.where(valid[:, k] & (k > 0), back[np.arange(len(tags)), k, s], s)
+    # forward-backward in scaled probabilities (each step normalized), the same transitions
+    like = np.exp(-(padded - padded.min(axis=2, keepdims=True)))
+    p_stay, p_switch = np.exp(-stay), np.exp(-switch)
+    fwd = np.empty((len(tags), length, combos))
+    a = np.exp(-(start - start.min(axis=1, keepdims=True))) * like[:, 0]
+    fwd[:, 0] = a / a.sum(axis=1, keepdims=True)
     for k in range(1, length):
-        step = _logsumexp(fwd[:, k - 1, :, None] + log_move, axis=1) - padded[:, k]
-        fwd[:, k] = np.where(valid[:, k, None], step, fwd[:, k - 1])
-    bwd = np.zeros((len(tags), length, combos))
+        prev = fwd[:, k - 1]
+        a = (prev * p_stay + (1.0 - prev) * p_switch) * like[:, k]
+        fwd[:, k] = np.where(valid[:, k, None], a / a.sum(axis=1, keepdims=True), prev)
+    bwd = np.ones((len(tags), length, combos))
     for k in range(length - 2, -1, -1):
-        step = _logsumexp(log_move + (bwd[:, k + 1] - padded[:, k + 1])[:, None, :], axis=2)
-        bwd[:, k] = np.where(valid[:, k + 1, None], step, 0.0)
-    joint = fwd + bwd
-    joint -= joint.max(axis=2, keepdims=True)
-    post = np.exp(joint)
+        b = bwd[:, k + 1] * like[:, k + 1]
+        b = b * p_stay + (b.sum(axis=1, keepdims=True) - b) * p_switch
+        bwd[:, k] = np.where(valid[:, k + 1, None], b / b.sum(axis=1, keepdims=True), 1.0)
+    post = fwd * bwd
     post /= post.sum(axis=2, keepdims=True)
     state = np.empty(n, dtype=int)
     posterior = np.empty((n, combos))
     state[order] = path[which, pos]
     posterior[order] = post[which, pos]
     return state, posterior
-
-
-def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
-    top = a.max(axis=axis, keepdims=True)
-    return np.squeeze(top, axis=axis) + np.log(np.sum(np.exp(a - top), axis=axis))
