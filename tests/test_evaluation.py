@@ -352,3 +352,31 @@ def test_a_run_folder_says_when_each_tag_was_first_and_last_heard(tmp_path):
 
     run, _reference, _tags = make_run(tmp_path)
     assert load_run(run).heard == {1: (1_000_000_000, 3_000_000_000), 2: (1_000_000_000, 3_000_000_000)}
+
+
+def test_the_time_each_tag_took_to_be_localized_counts_from_its_first_aoa():
+    """From the first AoA (tags.csv's first_heard_s) to the first estimate published as localized;
+    none for a tag published only with its prior, or never heard."""
+    from rover.evaluation.metrics import localized_after_s
+
+    empty = Poses2D(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0))
+    rows = [(5_000_000_000, 1, False), (7_500_000_000, 1, True), (9_000_000_000, 1, True), (8_000_000_000, 2, False)]
+    run = RunRecord(
+        empty,
+        empty,
+        np.zeros(0, int),
+        np.zeros((0, 2)),
+        np.zeros((0, 2, 2)),
+        tag_history=(
+            np.array([r[0] for r in rows], dtype=np.int64),
+            np.array([r[1] for r in rows]),
+            np.zeros((len(rows), 2)),
+            np.array([r[2] for r in rows]),
+            np.repeat(np.eye(2)[None], len(rows), axis=0),
+        ),
+        aoa=(np.zeros(0, np.int64), np.zeros(0, int), np.zeros(0), np.zeros(0)),
+        heard={1: (1_250_000_000, 9_000_000_000), 2: (1_000_000_000, 8_000_000_000)},
+    )
+    assert localized_after_s(run, 1) == pytest.approx(6.25)
+    assert localized_after_s(run, 2) is None
+    assert localized_after_s(run, 3) is None

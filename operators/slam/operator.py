@@ -286,9 +286,12 @@ class Slam(Operator):
             self.final_poses.append(pose)
             yield Emit("trajectory", pose, stamp)
         for t, found in self.window.finder.found[self.found_sent :]:
-            held = (
-                f"jump combination {found.combination} all along" if found.combination >= 0 else "jumps at any retune"
-            )
+            if found.combination >= 0:
+                held = f"jump combination {found.combination} all along"
+            elif math.isinf(found.redraw_rate):
+                held = "a jump combination drawn per bearing"
+            else:
+                held = f"jump steps, of the order of {found.redraw_rate * 60:g} a minute"
             log.info(
                 "slam: tag %d found at (%.2f, %.2f) m (%s): %.0f%% of its bearings agree, seen over %.0f deg, "
                 "margin %.0f",

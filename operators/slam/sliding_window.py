@@ -348,7 +348,7 @@ class SlidingWindow:
                             self.settings.tag_prior_std_m,
                             self.settings.aoa_std_scale,
                         ),
-                        run.jumps,
+                        run.bearings.jumps,
                     )
                     finder.settle(self.tag_ids[run.tag], run, done.value)
         return taken

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rover.operators.slam.epoch import padded_rows
+from rover.operators.slam.search_scores import Bearings
 from rover.operators.slam.tag_search import Found, SearchSettings, search_steps
 
 SEARCH_HISTORY = 400
@@ -23,14 +24,12 @@ positions are taken as known, which they are not quite)"""
 
 @dataclass
 class Search:
-    """A tag search under way: the tag slot, what it searches (bearing stamps, robot positions,
-    candidate stds and jumps, for putting the tag in use), and its remaining steps."""
+    """A tag search under way: the tag slot, what it searches (the bearings and their stamps, for
+    putting the tag in use), and its remaining steps."""
 
     tag: int
     stamps: np.ndarray
-    robot: np.ndarray
-    stds: np.ndarray
-    jumps: np.ndarray
+    bearings: Bearings
     steps: Generator[None, None, Found | None]
 
 
@@ -81,7 +80,8 @@ class TagFinder:
             robot = np.array([xy for _, xy, _ in rows])
             angles, stds, jumps = padded(0, np.nan), padded(1, 1.0), padded(2, -1).astype(int)
             stamps = np.array([st for st, _, _ in rows])
-            return Search(t, stamps, robot, stds, jumps, search_steps(robot, angles, stds, self.search, jumps))
+            bearings = Bearings((stamps - stamps[0]) * 1e-9, robot, angles, stds, jumps)
+            return Search(t, stamps, bearings, search_steps(bearings, self.search))
         return None
 
     def settle(self, tag_id: int, run: Search, found: Found) -> None:
@@ -100,8 +100,8 @@ def found_tag_info(
     gone = inlier & (run.stamps < oldest_stamp_ns)
     info = np.eye(2) * tag_prior_std_m**-2
     if gone.any():
-        d = found.position[None, :] - run.robot[gone]
-        std = run.stds[gone, found.choice[gone]] * aoa_std_scale
+        d = found.position[None, :] - run.bearings.robot[gone]
+        std = run.bearings.stds[gone, found.choice[gone]] * aoa_std_scale
         jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (np.maximum(np.sum(d**2, axis=1), 1e-6) * std)[:, None]
         info = info + SEARCH_INFO_SCALE * jac.T @ jac
     return info

@@ -5,11 +5,10 @@ combination, rover.operators.aoa.jumps) that a single burst cannot tell apart: t
 clean plane waves too. Geometry can: only the true candidates of a tag's bearings, seen from the
 robot's successive positions, cross at one point. So the search triangulates pairs of bearings
 (every pair of candidates, from well-separated positions) into hypotheses, scores each against all
-the tag's bearings with each bearing's best candidate (a max-mixture, capped: a bearing no
-candidate of which fits costs the same anywhere), refines the best by Gauss-Newton on its inliers,
-and accepts it only when no hypothesis elsewhere comes close: a tag stays unlocalized rather than
-be guessed. This works whether the jumps happen once per run or at every retune, since each
-bearing picks its own candidate.
+the tag's bearings with their combination a hidden sequence in time (`search_scores`: held all
+run, stepping now and then, or drawn afresh at every retune), refines the best by Gauss-Newton on
+the candidates of its best sequence, and accepts it only when no hypothesis elsewhere comes close:
+a tag stays unlocalized rather than be guessed.
 """
 
 from __future__ import annotations
@@ -22,6 +21,15 @@ from typing import TypeVar
 import numpy as np
 
 from rover.geometry import wrap_angle
+from rover.operators.slam.search_scores import (
+    FREE,
+    Bearings,
+    combinations,
+    decode,
+    model_costs,
+    model_rates,
+    score_steps,
+)
 
 
 @dataclass(frozen=True)
@@ -62,7 +70,9 @@ class Found:
     parallax_deg: float
     score: float = math.inf
     combination: int = -1
-    """the jump combination all its bearings share (-1: each bearing its own)"""
+    """the jump combination all its inlier bearings share (-1: they step or pick their own)"""
+    redraw_rate: float = FREE
+    """redraws a second of the jump model that fits best (FREE: a combination per bearing)"""
 
     def clear(self, s: SearchSettings) -> bool:
         """Whether the evidence settles the position: no rival elsewhere, most bearings agreeing, parallax."""
@@ -71,11 +81,6 @@ class Found:
 
 RAY_POINTS = 8
 """hypotheses along each candidate ray of the pair bearings, from min_range_m to max_range_m"""
-FREE_MARGIN_FACTOR = 2.0
-"""a position where each bearing picks its own candidate needs this many times the margin: with a
-free choice per bearing, a wrong place finds more ways to fit"""
-SCORE_CHUNK = 65_536
-"""residuals (hypotheses x bearings x candidates) scored at once: half a megabyte, in cache"""
 RANGE_CHECK = np.array([1.5, 2 / 3])
 """a found position's distance from the robot path scaled by these must cost the margin too: a
 place the bearings would fit as well farther out (a ghost at the edge of the search) is no place"""
@@ -101,42 +106,6 @@ def finish(steps: Generator[None, None, T]) -> T:
             next(steps)
         except StopIteration as done:
             return done.value
-
-
-def _scores(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float) -> np.ndarray:
-    """Per hypothesis q (H, 2): the sum over bearings of the best candidate's capped squared
-    residual (all at once; `_score_steps` a chunk per step)."""
-    return finish(_score_steps(q, robot, angles, stds, cap))
-
-
-def _score_steps(
-    q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float
-) -> Generator[None, None, np.ndarray]:
-    """_scores, the hot loop of the search (hypotheses x bearings x candidates), one cache-sized
-    chunk of hypotheses per step.
-
-    Each hypothesis's direction from each robot position is one atan2; with the candidates wrapped
-    once, a residual's size is the smaller of |difference| and a turn less it (no trigonometry
-    per candidate); a padding candidate (NaN) is never the best. Candidates lead the layout: the
-    reductions then run over contiguous rows."""
-    out = np.empty(len(q))
-    if len(q) == 0:
-        return out
-    turn = 2 * math.pi
-    candidate = wrap_angle(angles).T[:, None, :]  # (K, 1, n)
-    inverse = (1.0 / stds).T[:, None, :]
-    per = max(1, SCORE_CHUNK // max(angles.size, 1))
-    for i in range(0, len(q), per):
-        if i:
-            yield
-        h = q[i : i + per]
-        predicted = np.arctan2(h[:, 1, None] - robot[None, :, 1], h[:, 0, None] - robot[None, :, 0])
-        r = np.abs(predicted[None] - candidate)  # (K, h, n), within two turns
-        np.minimum(r, turn - r, out=r)
-        r *= inverse
-        r *= r
-        out[i : i + per] = np.fmin(np.fmin.reduce(r, axis=0), cap**2).sum(axis=1)
-    return out
 
 
 def spread_along(robot: np.ndarray, count: int) -> np.ndarray:
@@ -211,10 +180,12 @@ def _refine(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarr
     return q, choice, jac.T @ jac, score
 
 
-def by_combination(angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, combination: int):
-    """Each bearing's candidate for one jump combination as a one-candidate set (n, 1); a bearing
-    whose candidate for it was merged into another's keeps all its candidates (it fits either way)."""
-    has = jumps == combination
+def by_combination(angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, combination: int | np.ndarray):
+    """Each bearing's candidate for a jump combination (one for all, or one per bearing; -1: none)
+    as a one-candidate set (n, 1); a bearing without a candidate of its own for it (merged into
+    another's, or -1) keeps all its candidates (it fits either way). Also (n, K) the index of each
+    kept candidate among the bearing's own."""
+    has = (jumps == np.broadcast_to(np.asarray(combination), len(angles))[:, None]) & (jumps >= 0)
     own = has.any(axis=1)
     index = np.argmax(has, axis=1)
     rows = np.arange(len(angles))
@@ -225,73 +196,49 @@ def by_combination(angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, comb
     return pick_a, pick_s, source
 
 
-def search(
-    robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings, jumps: np.ndarray | None = None
-) -> Found | None:
-    """The likeliest position of the tag from its bearings: robot positions (n, 2), world-frame
-    candidate angles and their stds (n, K), NaN where a bearing has fewer candidates; None without
-    enough bearings or rays that cross. `Found.clear` says whether the evidence settles it.
-
-    With the candidates' jump combinations (n, K), a combination held by the tag's channel all run
-    long is tried first, one hypothesis family per combination (far fewer ways for a wrong place
-    to fit); failing that, each bearing picks its own candidate (a jump at any retune)."""
-    return finish(search_steps(robot_xy, angles, stds, s, jumps))
+def search(b: Bearings, s: SearchSettings) -> Found | None:
+    """The likeliest position of the tag from its bearings (candidates' combinations -1: unknown,
+    each bearing takes its best); None without enough bearings or rays that cross. `Found.clear`
+    says whether the evidence settles it."""
+    return finish(search_steps(b, s))
 
 
-def search_steps(
-    robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings, jumps: np.ndarray | None = None
-) -> Generator[None, None, Found | None]:
+def search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found | None]:
     """`search` a step at a time: each step scores one chunk of hypotheses (SCORE_CHUNK residuals)
     or refines one, so that a caller can spread a search over its idle time (the same result as
     `search`, whatever the steps taken at once)."""
-    n = len(robot_xy)
-    if n < s.min_bearings:
+    if len(b) < s.min_bearings:
         return None
-    if jumps is None:
-        jumps = np.full(angles.shape, -1)
-    if n > s.score_bearings:
-        keep = spread_along(robot_xy, s.score_bearings)
-        if len(keep) < n:
-            found = yield from search_steps(robot_xy[keep], angles[keep], stds[keep], s, jumps[keep])
+    if len(b) > s.score_bearings:
+        keep = spread_along(b.robot, s.score_bearings)
+        if len(keep) < len(b):
+            found = yield from search_steps(b.take(keep), s)
             if found is None:
                 return None
             yield
-            return _on_all(found, robot_xy, angles, stds, jumps, s)
-    held: list[Found] = []
-    for combination in np.unique(jumps[jumps >= 0]):
-        picked_a, picked_s, source = by_combination(angles, stds, jumps, int(combination))
-        one = yield from _search_steps(robot_xy, picked_a, picked_s, s)
-        if one is not None:
-            choice = np.where(one.choice >= 0, source[np.arange(n), np.maximum(one.choice, 0)], -1)
-            held.append(replace(one, choice=choice, combination=int(combination)))
-    if held:
-        best = min(held, key=lambda f: f.score)
-        reach = _reach(robot_xy, best.position, s)
-        rivals = [f.score - best.score for f in held if np.linalg.norm(f.position - best.position) > reach]
-        best = replace(best, margin=min([best.margin, *rivals]))
-        if best.clear(s):
-            return best
-    free = yield from _search_steps(robot_xy, angles, stds, s)
-    if free is not None:
-        reach = _reach(robot_xy, free.position, s)
-        elsewhere = np.array([f.position for f in held if np.linalg.norm(f.position - free.position) > reach])
-        cost = _scores(elsewhere.reshape(-1, 2), robot_xy, angles, stds, s.cap_sigma)
-        margin = min([free.margin, *(cost - free.score)])  # a place another search found
-        free = replace(free, margin=margin / FREE_MARGIN_FACTOR)
-    return free if not held or (free is not None and free.clear(s)) else best
+            return _on_all(found, b, s)
+    return (yield from _search_steps(b, s))
 
 
-def _on_all(
-    found: Found, robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, s: SearchSettings
-) -> Found:
-    """A position found on part of the bearings, refined on all of them (with the same jump
-    combination, if it has one): its choices, information, inliers and parallax are all the
-    bearings'; its margin stays the scoring bearings' (the rivals were scored on those)."""
-    if found.combination >= 0:
-        angles, stds, source = by_combination(angles, stds, jumps, found.combination)
-    position, choice, info, score = _refine(found.position, robot_xy, angles, stds, s.cap_sigma)
-    if found.combination >= 0:
-        choice = np.where(choice >= 0, source[np.arange(len(choice)), np.maximum(choice, 0)], -1)
+def _fit(q: np.ndarray, b: Bearings, rate: float, s: SearchSettings):
+    """Gauss-Newton from place q on the candidates of the best sequence there under the model of
+    `rate`; returns the place, each bearing's candidate (-1 outlier) and the information."""
+    picked_a, picked_s, source = by_combination(b.angles, b.stds, b.jumps, decode(q, b, rate, s.cap_sigma))
+    position, choice, info, _ = _refine(q, b.robot, picked_a, picked_s, s.cap_sigma)
+    return position, np.where(choice >= 0, source[np.arange(len(choice)), np.maximum(choice, 0)], -1), info
+
+
+def _held(choice: np.ndarray, jumps: np.ndarray, rate: float) -> int:
+    """The one combination all inlier bearings use, if they do under a sequence model (-1: not)."""
+    used = np.unique(jumps[np.flatnonzero(choice >= 0), choice[choice >= 0]])
+    return int(used[0]) if rate != FREE and len(used) == 1 and used[0] >= 0 else -1
+
+
+def _on_all(found: Found, b: Bearings, s: SearchSettings) -> Found:
+    """A position found on part of the bearings, refined on all of them under the same model: its
+    choices, information, inliers and parallax are all the bearings'; its margin stays the scoring
+    bearings' (the rivals were scored on those)."""
+    position, choice, info = _fit(found.position, b, found.redraw_rate, s)
     inlier = choice >= 0
     return replace(
         found,
@@ -299,8 +246,9 @@ def _on_all(
         choice=choice,
         info=info,
         inliers=float(np.mean(inlier)),
-        parallax_deg=_parallax_deg(position, robot_xy[inlier]),
-        score=score,
+        parallax_deg=_parallax_deg(position, b.robot[inlier]),
+        score=float(model_costs(position[None], b, s.cap_sigma).min()),
+        combination=_held(choice, b.jumps, found.redraw_rate),
     )
 
 
@@ -310,25 +258,30 @@ def _parallax_deg(position: np.ndarray, seen_from: np.ndarray) -> float:
     return math.degrees(_spread(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0
 
 
-def _search_steps(
-    robot_xy: np.ndarray, angles: np.ndarray, stds: np.ndarray, s: SearchSettings
-) -> Generator[None, None, Found | None]:
-    """One family of hypotheses (the candidates given), scored, its best refined, its margin."""
-    q = _hypotheses(robot_xy, angles, s)
+def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found | None]:
+    """The hypotheses, scored, the best refined under its best model, its margin over the best
+    elsewhere and over the same direction half as far again out or a third in (the range must be
+    settled too)."""
+    q = _hypotheses(b.robot, b.angles, s)
     if len(q) == 0:
         return None
     yield
-    score = yield from _score_steps(q, robot_xy, angles, stds, s.cap_sigma)
+    score = yield from score_steps(q, b, s.cap_sigma)
     yield
-    position, choice, info, best = _refine(q[np.argmin(score)], robot_xy, angles, stds, s.cap_sigma)
-    elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(robot_xy, position, s)]
+    start = q[np.argmin(score)]
+    rate = float(model_rates(combinations(b.jumps))[np.argmin(model_costs(start[None], b, s.cap_sigma)[:, 0])])
+    position, choice, info = _fit(start, b, rate, s)
+    best = float(model_costs(position[None], b, s.cap_sigma).min())
+    elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(b.robot, position, s)]
     margin = float(elsewhere.min() - best) if len(elsewhere) else math.inf
-    if (choice >= 0).any():  # the range must be settled too: half as far again out, or a third in
-        centre = robot_xy[choice >= 0].mean(axis=0)
+    inlier = choice >= 0
+    if inlier.any():
+        centre = b.robot[inlier].mean(axis=0)
         moved = centre + np.outer(RANGE_CHECK, position - centre)
-        margin = min(margin, float(_scores(moved, robot_xy, angles, stds, s.cap_sigma).min() - best))
-    inliers = float(np.mean(choice >= 0))
-    return Found(position, choice, info, margin, inliers, _parallax_deg(position, robot_xy[choice >= 0]), best)
+        margin = min(margin, float(model_costs(moved, b, s.cap_sigma).min() - best))
+    parallax = _parallax_deg(position, b.robot[inlier])
+    held = _held(choice, b.jumps, rate)
+    return Found(position, choice, info, margin, float(np.mean(inlier)), parallax, best, held, rate)
 
 
 def _reach(robot_xy: np.ndarray, position: np.ndarray, s: SearchSettings) -> float:

@@ -211,6 +211,7 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict[str
         reference = start.apply(np.asarray(where)[None])[0]
         entry: dict[str, Any] = {"nlos": bool(nlos), "localized": bool(np.isfinite(xy).all())}
         if entry["localized"]:
+            entry["localized_after_s"] = localized_after_s(run, int(tag_id))
             entry["error_m"] = float(np.linalg.norm(xy - reference))
             entry["aligned_error_m"] = float(np.linalg.norm(final.alignment.apply(xy[None])[0] - reference))
             entry["reported_std_m"] = float(math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
@@ -229,6 +230,16 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict[str
             "nlos": angle_stats(error[aoa_nlos], std[aoa_nlos]),
         }
     return metrics
+
+
+def localized_after_s(run: RunRecord, tag_id: int) -> float | None:
+    """Seconds from the tag's first AoA to its first estimate published as localized (None: never,
+    or not heard)."""
+    stamps, ids, _, observable, _ = run.tag_history
+    mine = observable & (ids == tag_id)
+    if not mine.any() or tag_id not in run.heard:
+        return None
+    return float(stamps[mine].min() - run.heard[tag_id][0]) * 1e-9
 
 
 def published_honesty(run: RunRecord, truth: Truth, start: Rigid2D) -> dict[str, dict[str, Any]]:
@@ -297,14 +308,15 @@ def render(metrics: dict[str, Any]) -> str:
                 f"{cm(e['max_m']):>10}{e['poses']:>7}"
             )
     lines.append(f"  paper (Zhang et al.): robot mean {cm(PAPER_ROBOT_MEAN_M)}")
-    lines.append(f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}{'sigmas':>8}")
+    lines.append(f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}{'sigmas':>8}{'localized after':>17}")
     for tag_id, t in metrics["tags"].items():
         label = f"{tag_id}{' NLOS' if t['nlos'] else ''}"
         if t["localized"]:
             sigmas = "-" if t["sigmas"] is None else f"{t['sigmas']:.1f}"
+            after = "-" if t.get("localized_after_s") is None else f"{t['localized_after_s']:.1f} s"
             lines.append(
                 f"{label:<8}{cm(t['error_m']):>10}{cm(t['aligned_error_m']):>10}{cm(t['reported_std_m']):>14}"
-                f"{sigmas:>8}"
+                f"{sigmas:>8}{after:>17}"
             )
         else:
             lines.append(f"{label:<8}{'never localized':>34}")
