@@ -33,6 +33,7 @@ class State:
     vel: np.ndarray  # (N, 2) world velocity
     acc: np.ndarray  # (N, 2) world acceleration
     yaw_rate: np.ndarray  # (N,)
+    along_m: np.ndarray  # (N,) distance travelled since the start
 
 
 class Motion:
@@ -76,8 +77,9 @@ class Motion:
     def state(self, t: np.ndarray) -> State:
         t = np.clip(np.asarray(t, dtype=np.float64), 0.0, self.duration_s)
         n = len(t)
-        out = State(np.zeros((n, 2)), np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n))
+        out = State(np.zeros((n, 2)), np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n))
         starts = np.array([s.start_s for s in self.segments])
+        travelled = np.cumsum([0.0] + [s.length_m if s.kind == "straight" else 0.0 for s in self.segments])
         index = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(self.segments) - 1)
         for k, seg in enumerate(self.segments):
             mask = index == k
@@ -86,12 +88,14 @@ class Motion:
             tau = np.clip(t[mask] - seg.start_s, 0.0, seg.duration_s)
             out.xy[mask] = seg.origin
             out.yaw[mask] = seg.heading
+            out.along_m[mask] = travelled[k]
             if seg.kind == "straight":
                 dist, speed, acc = _ramped(tau, seg.length_m, seg.peak, seg.ramp_s)
                 u = np.array([math.cos(seg.heading), math.sin(seg.heading)])
                 out.xy[mask] += dist[:, None] * u
                 out.vel[mask] = speed[:, None] * u
                 out.acc[mask] = acc[:, None] * u
+                out.along_m[mask] += dist
             elif seg.kind == "turn":
                 d = seg.duration_s
                 sign = math.copysign(1.0, seg.length_m)

@@ -4,8 +4,9 @@ CSI follows DESIGN.md's convention, `H_m(f) = sum_k g_k exp(-j 2 pi f tau_km)` w
 `tau_km = tau_k - (p_m . u(theta_k)) / c`, over two hops: the access point to the tag (at the
 excitation channel's frequencies) and the tag to the robot (at the tag's channel), each with
 its line-of-sight path and the four first-order wall reflections of a rectangular room (image
-method, amplitude reflection coefficient per bounce, 1/distance amplitudes). Every pair of
-paths is one virtual path whose angle is the second hop's. Then the receiver's impairments:
+method, amplitude reflection coefficient per bounce, 1/distance amplitudes), and on the second hop
+the paths via the room's clutter (rover.datasets.clutter) and the direct path's shadowing. Every
+pair of paths is one virtual path whose angle is the second hop's. Then the receiver's impairments:
 sampling-time offset, common phase, per-chain phase offsets, noise, AGC and int8 quantization.
 """
 
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rover.datasets.clutter import Scatterers
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, SUBCARRIERS_20MHZ, channel_freq_hz
 from rover.geometry import wrap_angle
 
@@ -45,6 +47,15 @@ def paths(source: np.ndarray, receivers: np.ndarray, room_m: tuple[float, float]
     return Paths(length, gain, delta / np.maximum(length, 1e-9)[..., None])
 
 
+def scattered_paths(source: np.ndarray, receivers: np.ndarray, scatterers: Scatterers) -> Paths:
+    """The paths from `source` via each scatterer to each receiver point (N, 2)."""
+    to_scatterer = np.linalg.norm(scatterers.xy - source[None, :], axis=1)  # (S,)
+    delta = scatterers.xy[None, :, :] - receivers[:, None, :]
+    out = np.linalg.norm(delta, axis=-1)  # (N, S)
+    gain = scatterers.reflectivity_m[None, :] / (np.maximum(to_scatterer, 0.05)[None, :] * np.maximum(out, 0.05))
+    return Paths(to_scatterer[None, :] + out, gain, delta / np.maximum(out, 1e-9)[..., None])
+
+
 def subcarrier_offsets_hz() -> np.ndarray:
     return SUBCARRIERS_20MHZ * SUBCARRIER_SPACING_HZ
 
@@ -59,18 +70,27 @@ def backscatter_csi(
     tag_channel: int,
     room_m: tuple[float, float],
     reflection: float,
-    direct_attenuation_db: float = 0.0,
+    direct_attenuation_db: float | np.ndarray = 0.0,
+    scatterers: Scatterers | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free CSI (N, 30, M) at N robot poses, and the direct-to-multipath power ratio (N,) in dB of the
-    tag-to-robot link: the first hop's paths share one angle, so only the second hop's set the AoA's difficulty."""
+    tag-to-robot link: the first hop's paths share one angle, so only the second hop's set the AoA's difficulty.
+    The direct path loses `direct_attenuation_db` (a wall between, shadowing: one value, or one per pose)."""
     n = len(robot_xy)
     offsets = subcarrier_offsets_hz()
     f1 = channel_freq_hz(excitation_channel) + offsets  # first hop, AP -> tag
     f2 = channel_freq_hz(tag_channel) + offsets  # second hop, tag -> robot
     hop1 = paths(ap, tag[None, :], room_m, reflection)
     hop2 = paths(tag, robot_xy, room_m, reflection)
+    if scatterers is not None and len(scatterers.xy):
+        via = scattered_paths(tag, robot_xy, scatterers)
+        hop2 = Paths(
+            np.concatenate([hop2.length_m, via.length_m], axis=1),
+            np.concatenate([hop2.gain, via.gain], axis=1),
+            np.concatenate([hop2.direction, via.direction], axis=1),
+        )
     g2 = hop2.gain.copy()
-    g2[:, 0] *= 10 ** (-direct_attenuation_db / 20)
+    g2[:, 0] *= 10 ** (-np.asarray(direct_attenuation_db) / 20)
     cos, sin = np.cos(robot_yaw), np.sin(robot_yaw)
     d = hop2.direction
     body = np.stack(

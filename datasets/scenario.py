@@ -11,7 +11,7 @@ from typing import Any
 
 from rover.errors import BadInput, Diagnostic, SpecError
 from rover.pipeline import params as P
-from rover.pipeline.params import Fraction, NonNegativeFloat, PositiveFloat, PositiveInt
+from rover.pipeline.params import Fraction, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
 from rover.pipeline.spec import did_you_mean, read_yaml_text
 from rover.pipeline.yamlpos import Located, load, parse_scalar
 
@@ -20,6 +20,15 @@ from rover.pipeline.yamlpos import Located, load, parse_scalar
 class Room:
     size_m: tuple[PositiveFloat, PositiveFloat] = (9.0, 5.0)
     wall_reflection: Fraction = 0.5
+    scatterers: NonNegativeInt = 0
+    """point scatterers (furniture, people, shelves) placed at random in the room, each a path
+    tag -> scatterer -> robot (rover.datasets.clutter)"""
+    scatterer_reflectivity_m: tuple[PositiveFloat, NonNegativeFloat] = (0.15, 6.0)
+    """their amplitude reflectivity: median (m) and log-normal spread (dB of power)"""
+    shadowing_db: NonNegativeFloat = 0.0
+    """std of each tag's direct path's shadow fading along the robot's path (0: none)"""
+    shadowing_distance_m: PositiveFloat = 1.5
+    """distance along the path over which the shadowing decorrelates (to 1/e)"""
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from rover.datasets.clutter import place_scatterers, shadowing_db
 from rover.datasets.imu_model import imu_samples, odometry_samples
 from rover.datasets.motion import Motion
 from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
@@ -37,6 +38,8 @@ JUMP_STREAM = 14
 """the phase jumps draw from their own random stream, so turning them on changes nothing else"""
 STEP_STREAM = 15
 """the persistent steps draw from a stream of their own too"""
+CLUTTER_STREAM = 16
+"""the clutter (scatterers and shadowing) draws from a stream of its own"""
 JUMP_DRAWS = 4
 """jumps are drawn as 0..3 steps: at 5 GHz (step pi) that is 0 or pi, each equally likely"""
 
@@ -213,6 +216,8 @@ def simulate(
     room = (scenario.room.size_m[0], scenario.room.size_m[1])
     heard = np.zeros(len(true_t), dtype=bool)
     csi = np.zeros((len(true_t), 30, len(antennas)), dtype=np.complex128)
+    clutter_rng = np.random.default_rng([seed, CLUTTER_STREAM])
+    scatterers = place_scatterers(room, scenario.room.scatterers, *scenario.room.scatterer_reflectivity_m, clutter_rng)
     for i, tag in enumerate(scenario.tags):
         mine = owner == i
         position = np.array(tag.position_m, dtype=np.float64)
@@ -222,6 +227,9 @@ def simulate(
             report.packets_per_tag[tag.id] = 0
             continue
         attenuation = rng.uniform(*rx.nlos_attenuation_db) if tag.nlos else 0.0
+        shadow = shadowing_db(
+            state.along_m[in_range], scenario.room.shadowing_db, scenario.room.shadowing_distance_m, clutter_rng
+        )
         clean, ratio = backscatter_csi(
             ap,
             position,
@@ -232,7 +240,8 @@ def simulate(
             tag.channel,
             room,
             scenario.room.wall_reflection,
-            attenuation,
+            attenuation + shadow,
+            scatterers,
         )
         csi[in_range] = clean
         report.packets_per_tag[tag.id] = int(in_range.sum())
