@@ -21,6 +21,7 @@ import numpy as np
 from rover.geometry import quaternion_from_yaw, yaw_from_quaternion
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
+from rover.operators.slam.information import largest_std_m
 from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings, bias_jacobian
 from rover.pipeline.params import PositiveFloat, Range
 
@@ -322,10 +323,13 @@ class Slam(Operator):
 
     def _tags(self, stamp: int) -> Any:
         w = self.window
-        observable = w.observable()
+        # published: the window's covariances scaled up to cover how much each tag's estimate depends on
+        # where it was seen from (integrity.TagIntegrity); the window itself goes on with its own
+        covariance = w.integrity.scaled(w.tag_covariance)
+        observable = largest_std_m(covariance) <= w.settings.observable_std_m
         tags = []
         for i, (tag_id, (x, y)) in enumerate(zip(w.tag_ids, w.tag_positions(), strict=True)):
-            cov = np.nan_to_num(w.tag_covariance[i], nan=1e12, posinf=1e12)
+            cov = np.nan_to_num(covariance[i], nan=1e12, posinf=1e12)
             tags.append(
                 make(
                     "rover_msgs/msg/Tag",

@@ -45,6 +45,7 @@ from rover.operators.slam.factors import (
     wheel_rows,
 )
 from rover.operators.slam.information import covariances, largest_std_m, window_information
+from rover.operators.slam.integrity import TagIntegrity, disagreeing
 from rover.operators.slam.layout import (
     ACCEL_BIAS_STATES,
     EPOCH_STATES,
@@ -57,7 +58,7 @@ from rover.operators.slam.layout import (
 )
 from rover.operators.slam.marginalization import Leaving, Prior, marginalize_oldest
 from rover.operators.slam.settings import WindowSettings
-from rover.operators.slam.tag_finder import TagFinder, found_tag_info
+from rover.operators.slam.tag_finder import TagFinder, found_tag_info, gone_bearings
 from rover.operators.slam.tag_search import Found
 from rover.operators.slam.window_program import Program, SolverFailed, UpdateData, WindowProgram, edge_matrix
 
@@ -118,6 +119,8 @@ class SlidingWindow:
     """the tags waiting for the search, and what it found"""
     jumps: JumpMemory = field(default_factory=JumpMemory)
     """per tag slot: the jump combinations of its recent bearings (where a window starts, the switch rate)"""
+    integrity: TagIntegrity = field(default_factory=TagIntegrity)
+    """per tag slot: its bearings that left the window, whose jackknife scales its covariance up"""
     left: list[Epoch] = field(default_factory=list)
     """epochs that left the window since the owner last emptied this list (their choices are final)"""
     stacked: Bearings | None = field(default=None, repr=False)
@@ -338,18 +341,12 @@ class SlidingWindow:
             except StopIteration as done:
                 run, finder.searching = finder.searching, None
                 if done.value is not None and done.value.clear(finder.search):
-                    self._activate(
-                        run.tag,
-                        done.value,
-                        found_tag_info(
-                            run,
-                            done.value,
-                            self.epochs[0].stamp_ns if self.epochs else 0,
-                            self.settings.tag_prior_std_m,
-                            self.settings.aoa_std_scale,
-                        ),
-                        run.bearings.jumps,
-                    )
+                    oldest = self.epochs[0].stamp_ns if self.epochs else 0
+                    s = self.settings
+                    info = found_tag_info(run, done.value, oldest, s.tag_prior_std_m, s.aoa_std_scale)
+                    self._activate(run.tag, done.value, info, run.bearings.jumps)
+                    robot, angles, stds = gone_bearings(run, done.value, oldest)
+                    self.integrity.start(run.tag, robot, angles, stds * s.aoa_std_scale)
                     finder.settle(self.tag_ids[run.tag], run, done.value)
         return taken
 
@@ -544,20 +541,11 @@ class SlidingWindow:
     def _check_consistency(self, tags: np.ndarray, active: np.ndarray) -> None:
         """Relax the prior of tags whose recent bearings keep disagreeing with their estimate."""
         s = self.settings
-        if not s.reset_updates:
-            return
         localized = np.zeros(len(self.tag_ids), bool)
         localized[: len(self.tag_covariance)] = self.observable()
-        for t in range(len(self.tag_ids)):
-            mine = tags == t
-            if localized[t] and mine.sum() >= 3 and active[mine].mean() > 0.5:
-                self.disagreement[t] = self.disagreement.get(t, 0) + 1
-            elif mine.any():
-                self.disagreement[t] = 0
-            if self.disagreement.get(t, 0) >= s.reset_updates:
-                self.prior = self._prior.relaxed(prior_tag(t), s.reset_factor)
-                self.disagreement[t] = 0
-                self.resets += 1
+        for t in disagreeing(self.disagreement, tags, active, localized, s.reset_updates):
+            self.prior = self._prior.relaxed(prior_tag(t), s.reset_factor)
+            self.resets += 1
 
     def _covariances(self, epoch, tag, residual, jb, filled) -> None:
         """The tags' and shared states' covariances from the Gauss-Newton information at the estimate
@@ -566,6 +554,9 @@ class SlidingWindow:
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
         info = window_information(self.shape, self._prior.info, self.edges, self.epochs, epoch, coeff)
         self.tag_covariance, self.bias_covariance = covariances(info, self.shape)
+        for t, cov in enumerate(self.tag_covariance):
+            if self.active[t]:
+                self.integrity.judge(t, self.x[self.shape.tag(t)], cov, self.settings.huber_sigma)
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`); worked
@@ -589,6 +580,9 @@ class SlidingWindow:
             jump = int(old.candidate_jumps[j, old.choice[j]])
             if jump >= 0:
                 self.jumps.learn(int(old.tags[j]), jump)
+            self.integrity.add(
+                int(old.tags[j]), x[0:2], old.candidates[j, old.choice[j]], old.std[j] * self.settings.aoa_std_scale
+            )
         leaving = Leaving(old.velocity_info, old.velocity_linear, old.tags[use], old.bearing[use], old.std[use])
         self.prior = marginalize_oldest(self._prior, own, leaving, edge, self.settings, self.accel_biases, self.scale)
         self.finals.append((old.stamp_ns, float(x[0]), float(x[1]), old.yaw))

@@ -90,18 +90,25 @@ class TagFinder:
         self.found.append((tag_id, found))
 
 
+def gone_bearings(run: Search, found: Found, oldest_stamp_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The found tag's inlier bearings that already left the window (before `oldest_stamp_ns`):
+    robot positions (n, 2), the world angles of the candidates the search chose, their stds."""
+    gone = np.flatnonzero((found.choice >= 0) & (run.stamps < oldest_stamp_ns))
+    b = run.bearings
+    return b.robot[gone], b.angles[gone, found.choice[gone]], b.stds[gone, found.choice[gone]]
+
+
 def found_tag_info(
     run: Search, found: Found, oldest_stamp_ns: int, tag_prior_std_m: float, aoa_std_scale: float
 ) -> np.ndarray:
     """The 2x2 information a found tag starts with: the new-tag prior, plus the information of its
     bearings that already left the window (before `oldest_stamp_ns`), their robot positions taken as
     known, so weighed down by SEARCH_INFO_SCALE."""
-    inlier = found.choice >= 0
-    gone = inlier & (run.stamps < oldest_stamp_ns)
+    robot, _, stds = gone_bearings(run, found, oldest_stamp_ns)
     info = np.eye(2) * tag_prior_std_m**-2
-    if gone.any():
-        d = found.position[None, :] - run.bearings.robot[gone]
-        std = run.bearings.stds[gone, found.choice[gone]] * aoa_std_scale
+    if len(robot):
+        d = found.position[None, :] - robot
+        std = stds * aoa_std_scale
         jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (np.maximum(np.sum(d**2, axis=1), 1e-6) * std)[:, None]
         info = info + SEARCH_INFO_SCALE * jac.T @ jac
     return info

@@ -1,0 +1,181 @@
+"""Whether a localized tag's covariance covers its error (rover.operators.slam.integrity): the block
+jackknife over the places its bearings were taken from, against a plain implementation and in the
+statistics it is for."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from rover.operators.slam.integrity import (
+    CELL_M,
+    MIN_CELLS,
+    TagIntegrity,
+    disagreeing,
+    inflation,
+    jackknife_covariance,
+    small_sample_factor,
+)
+
+TAG = np.array([3.0, 2.0])
+HUBER = 1.5
+
+
+def rectangle(step_m: float = 0.1) -> np.ndarray:
+    """Robot positions every `step_m` around a 6 x 4 m rectangle about the tag."""
+    corners = np.array([[0.0, 0.0], [6.0, 0.0], [6.0, 4.0], [0.0, 4.0], [0.0, 0.0]])
+    points = []
+    for a, b in zip(corners[:-1], corners[1:], strict=True):
+        n = round(np.linalg.norm(b - a) / step_m)
+        points.append(a + np.outer(np.arange(n) / n, b - a))
+    return np.concatenate(points)
+
+
+def bearings(robot: np.ndarray, tag: np.ndarray, noise_rad: np.ndarray) -> np.ndarray:
+    d = tag[None, :] - robot
+    return np.arctan2(d[:, 1], d[:, 0]) + noise_rad
+
+
+def fit(robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Weighted least squares on the angles (scipy), the estimate."""
+
+    def residual(q: np.ndarray) -> np.ndarray:
+        d = q[None, :] - robot
+        return (np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - angles)))) / stds
+
+    return least_squares(residual, start, xtol=1e-12, ftol=1e-12, gtol=1e-12).x
+
+
+def naive_covariance(q: np.ndarray, robot: np.ndarray, stds: np.ndarray) -> np.ndarray:
+    """The covariance that takes the bearings as independent: the inverse of J^T W J."""
+    d = q[None, :] - robot
+    jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (np.sum(d**2, axis=1) * stds)[:, None]
+    return np.linalg.inv(jac.T @ jac)
+
+
+def test_the_jackknife_is_the_leave_one_cell_out_spread_written_plainly():
+    """Against scipy's least squares on each cell left out in turn (no bearing beyond the Huber
+    threshold here, so every weight is its std's)."""
+    rng = np.random.default_rng(1)
+    robot = rectangle()
+    stds = np.full(len(robot), math.radians(2.0))
+    angles = bearings(robot, TAG, rng.normal(0.0, math.radians(1.0), len(robot)))
+    estimate = fit(robot, angles, stds, TAG)
+    cells = np.floor(robot / CELL_M).astype(int)
+    keys = np.unique(cells, axis=0)
+    left_out = []
+    for key in keys:
+        keep = ~np.all(cells == key, axis=1)
+        left_out.append(fit(robot[keep], angles[keep], stds[keep], estimate))
+    dev = np.array(left_out) - np.mean(left_out, axis=0)
+    expected = (len(keys) - 1) / len(keys) * dev.T @ dev * small_sample_factor(len(keys))
+    got = jackknife_covariance(estimate, robot, angles, stds, HUBER)
+    assert got is not None
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-12)
+
+
+def test_with_independent_errors_the_covariance_needs_no_inflation():
+    """Bearings erring independently: the jackknife (without its small-sample factor) agrees with
+    the covariance that takes them as independent, within its own sampling spread."""
+    robot = rectangle()
+    stds = np.full(len(robot), math.radians(2.0))
+    ratios = []
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        angles = bearings(robot, TAG, rng.normal(0.0, math.radians(2.0), len(robot)))
+        estimate = fit(robot, angles, stds, TAG)
+        jack = jackknife_covariance(estimate, robot, angles, stds, HUBER)
+        assert jack is not None
+        cells = len(np.unique(np.floor(robot / CELL_M).astype(int), axis=0))
+        ratios.append(np.trace(jack) / small_sample_factor(cells) / np.trace(naive_covariance(estimate, robot, stds)))
+    assert 0.6 < np.median(ratios) < 1.6
+
+
+def test_errors_shared_within_a_place_are_covered_once_inflated():
+    """Each 1 m cell of the path bends its bearings by an offset of its own (3 deg, as clutter near
+    the robot does) on top of independent 1 deg noise, stated as 2 deg. Taken as independent, the
+    covariance leaves a third of the estimates beyond 3 sigma; scaled to cover the jackknife, about
+    a 2-D Gaussian's 1.1%."""
+    robot = rectangle()
+    stds = np.full(len(robot), math.radians(2.0))
+    cells = np.unique(np.floor(robot / CELL_M).astype(int), axis=0, return_inverse=True)[1].ravel()
+    naive, inflated = [], []
+    for seed in range(200):
+        rng = np.random.default_rng(seed)
+        offset = rng.normal(0.0, math.radians(3.0), cells.max() + 1)[cells]
+        angles = bearings(robot, TAG, offset + rng.normal(0.0, math.radians(1.0), len(robot)))
+        estimate = fit(robot, angles, stds, TAG)
+        cov = naive_covariance(estimate, robot, stds)
+        error = estimate - TAG
+        k = inflation(cov, jackknife_covariance(estimate, robot, angles, stds, HUBER))
+        naive.append(math.sqrt(error @ np.linalg.solve(cov, error)))
+        inflated.append(math.sqrt(error @ np.linalg.solve(k * cov, error)))
+    assert np.mean(np.array(naive) > 3) > 0.3
+    assert np.mean(np.array(inflated) > 3) <= 0.02
+
+
+def test_the_small_sample_factor_is_hotellings():
+    """Simulated: with B cells, a 2-D error measured in a covariance estimated on B - 1 degrees of
+    freedom and scaled by the factor is beyond 3 sigma as often as a Gaussian's is in its own."""
+    rng = np.random.default_rng(5)
+    for cells in (6, 12, 30):
+        error = rng.standard_normal((20_000, 2))
+        samples = rng.standard_normal((20_000, cells - 1, 2))
+        estimate = np.einsum("tki,tkj->tij", samples, samples) / (cells - 1) * small_sample_factor(cells)
+        sigmas2 = np.einsum("ti,ti->t", error, np.linalg.solve(estimate, error[..., None])[..., 0])
+        assert np.mean(sigmas2 > 9) == pytest.approx(math.exp(-4.5), abs=0.003), cells
+    assert small_sample_factor(20) == pytest.approx(1.37, abs=0.01)
+
+
+def test_few_places_say_nothing_and_leave_the_covariance_as_it_is():
+    robot = rectangle()[:40]  # 4 m of one side: 4 cells
+    assert len(np.unique(np.floor(robot / CELL_M).astype(int), axis=0)) < MIN_CELLS
+    stds = np.full(len(robot), 0.03)
+    assert jackknife_covariance(TAG, robot, bearings(robot, TAG, np.zeros(len(robot))), stds, HUBER) is None
+    assert inflation(np.eye(2), None) == 1.0
+    assert inflation(np.eye(2), np.eye(2) * 0.5) == 1.0
+    assert inflation(np.eye(2), np.diag([0.5, 4.0])) == pytest.approx(4.0)
+    assert inflation(np.eye(2), np.full((2, 2), np.inf)) == math.inf
+
+
+def test_a_tag_is_judged_on_the_bearings_it_has_when_due():
+    """Started from the search's bearings the jackknife is due at once; then every EVERY_BEARINGS."""
+    from rover.operators.slam.integrity import EVERY_BEARINGS
+
+    robot = rectangle()
+    angles = bearings(robot, TAG, np.random.default_rng(3).normal(0.0, 0.05, len(robot)))
+    stds = np.full(len(robot), 0.03)
+    trust = TagIntegrity()
+    trust.start(0, robot[:100], angles[:100], stds[:100])
+    cov = np.eye(2) * 1e-6
+    trust.judge(0, TAG, cov, HUBER)
+    first = trust.scale[0]
+    assert first > 1.0 and trust.due[0] == EVERY_BEARINGS
+    np.testing.assert_allclose(trust.scaled(np.stack([cov, cov]))[0], first * cov)
+    np.testing.assert_array_equal(trust.scaled(np.stack([cov, cov]))[1], cov)  # a tag not judged keeps its own
+    for r, a, s in zip(robot[100 : 100 + EVERY_BEARINGS - 1], angles[100:], stds[100:], strict=False):
+        trust.add(0, r, float(a), float(s))
+    trust.judge(0, TAG, cov, HUBER)
+    assert trust.scale[0] == first, "not due yet: the last jackknife holds"
+    trust.add(0, robot[150], float(angles[150]), float(stds[150]))
+    assert trust.due[0] == 0
+    trust.judge(0, TAG, cov, HUBER)
+    assert trust.due[0] == EVERY_BEARINGS and len(trust.seen[0]) == 100 + EVERY_BEARINGS
+    trust.scale[0] = math.inf
+    assert np.all(np.isinf(trust.scaled(cov[None])[0])), "a tag the jackknife cannot pin is published unlocalized"
+
+
+def test_a_tag_whose_bearings_keep_disagreeing_is_re_examined():
+    counts: dict[int, int] = {}
+    tags = np.array([0, 0, 0, 1, 1, 1])
+    most = np.array([True, True, False, False, False, True])
+    localized = np.array([True, True])
+    for _ in range(2):
+        assert disagreeing(counts, tags, most, localized, 3) == []
+    assert counts == {0: 2, 1: 0}
+    assert disagreeing(counts, tags, most, localized, 3) == [0] and counts[0] == 0
+    assert disagreeing(counts, tags, most, np.array([False, True]), 3) == [] and counts[0] == 0
+    assert disagreeing(counts, tags, most, localized, 0) == []
