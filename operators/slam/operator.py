@@ -23,6 +23,7 @@ from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.slam.information import largest_std_m
 from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings, bias_jacobian
+from rover.operators.slam.tag_finder import why_waiting
 from rover.pipeline.params import PositiveFloat, Range
 
 log = logging.getLogger("rover.slam")
@@ -394,10 +395,32 @@ class Slam(Operator):
             log.warning(
                 "slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)", self.unchained
             )
+        published = w.integrity.scaled(w.tag_covariance)
         for slot, tag_id in enumerate(w.tag_ids):
             combination = w.locked(slot)
             if combination is not None:
                 log.info("slam: tag %d's chains held jump combination %d all run", tag_id, combination)
+            std_m = float(largest_std_m(published[slot : slot + 1])[0])
+            if not w.active[slot]:
+                heard, needed = w.finder.heard.get(slot, 0), w.finder.search.min_bearings
+                why = (
+                    why_waiting(w.finder.last[slot], w.finder.search)
+                    if slot in w.finder.last
+                    else f"{heard} of its bearings heard, {needed} needed before the search"
+                )
+                log.warning("slam: tag %d not localized: %s", tag_id, why)
+            elif w.active[slot] and std_m > w.settings.observable_std_m:
+                jackknife = w.integrity.scale.get(slot, 1.0)
+                log.warning(
+                    "slam: tag %d not localized at the end: its position's largest std is %.2f m (%.2f m at most)%s",
+                    tag_id,
+                    std_m,
+                    w.settings.observable_std_m,
+                    f", the window's scaled by {math.sqrt(jackknife):.1f} for how much the estimate depends on "
+                    "where the tag was seen from"
+                    if jackknife > 1
+                    else "",
+                )
         if self.failures:
             log.warning(
                 "slam: %d of %d updates did not converge (kept the previous estimate)", self.failures, self.updates

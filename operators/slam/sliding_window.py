@@ -340,6 +340,7 @@ class SlidingWindow:
                 next(finder.searching.steps)
             except StopIteration as done:
                 run, finder.searching = finder.searching, None
+                finder.last[run.tag] = done.value
                 if done.value is not None and done.value.clear(finder.search):
                     oldest = self.epochs[0].stamp_ns if self.epochs else 0
                     s = self.settings

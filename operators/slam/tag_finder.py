@@ -48,6 +48,8 @@ class TagFinder:
     """robot position of each epoch that left the window, by stamp"""
     found: list[tuple[int, Found]] = field(default_factory=list)
     """(tag id, search result) of every tag the search localized, in order"""
+    last: dict[int, Found | None] = field(default_factory=dict)
+    """per tag slot: what its latest search found, clear or not (None: too few bearings or no crossing)"""
     searching: Search | None = field(default=None, repr=False)
     """the tag search under way, if any"""
 
@@ -88,6 +90,21 @@ class TagFinder:
         """The search found the tag: it waits no more."""
         self.history.pop(run.tag, None)
         self.found.append((tag_id, found))
+
+
+def why_waiting(found: Found | None, s: SearchSettings) -> str:
+    """Why a tag the search has not localized is not: what its latest search found."""
+    if found is None:
+        return f"its bearings did not triangulate (fewer than {s.min_bearings}, or rays that never crossed)"
+    missing = []
+    if found.margin < s.min_margin:
+        missing.append(f"another place fits within {found.margin:.0f} of its cost ({s.min_margin:.0f} needed)")
+    if found.inliers < s.min_inliers:
+        missing.append(f"{100 * found.inliers:.0f}% of its bearings agree ({100 * s.min_inliers:.0f}% needed)")
+    if found.parallax_deg < s.min_parallax_deg:
+        missing.append(f"seen over {found.parallax_deg:.0f} deg ({s.min_parallax_deg:.0f} needed)")
+    x, y = found.position
+    return f"the search's best place ({x:.2f}, {y:.2f}) m is not clear: " + "; ".join(missing)
 
 
 def gone_bearings(run: Search, found: Found, oldest_stamp_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
