@@ -88,3 +88,11 @@ def quaternion_from_matrix(r: np.ndarray) -> tuple[float, float, float, float]:
     y = math.copysign(math.sqrt(max(0.0, 1 - r[0, 0] + r[1, 1] - r[2, 2])) / 2, r[0, 2] - r[2, 0])
     z = math.copysign(math.sqrt(max(0.0, 1 - r[0, 0] - r[1, 1] + r[2, 2])) / 2, r[1, 0] - r[0, 1])
     return x, y, z, w
+
+
+def smallest_arc(angles: np.ndarray) -> float:
+    """The smallest arc (rad) that holds all the angles (the parallax of a place seen from these
+    directions)."""
+    a = np.sort(np.mod(angles, 2 * math.pi))
+    gaps = np.diff(np.concatenate([a, [a[0] + 2 * math.pi]]))
+    return float(2 * math.pi - gaps.max())

@@ -380,3 +380,24 @@ def test_the_time_each_tag_took_to_be_localized_counts_from_its_first_aoa():
     assert localized_after_s(run, 1) == pytest.approx(6.25)
     assert localized_after_s(run, 2) is None
     assert localized_after_s(run, 3) is None
+
+
+def test_the_parallax_a_tag_had_when_first_localized():
+    """Seen from the robot's positions at its AoAs until its first localized estimate: the robot at
+    (0, 0), (2, 0) and (2, 2) seen from a tag at (1, 1) spans 180 deg; an AoA after it adds nothing."""
+    from rover.evaluation.metrics import parallax_at_localization_deg
+
+    stamps = np.array([1, 2, 3, 4], dtype=np.int64) * 1_000_000_000
+    final = Poses2D(stamps, np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]]), np.zeros(4))
+    history = (
+        np.array([2_500_000_000, 3_000_000_000, 4_000_000_000], dtype=np.int64),
+        np.array([1, 1, 1]),
+        np.array([[5.0, 5.0], [1.0, 1.0], [1.0, 1.0]]),
+        np.array([False, True, True]),
+        np.repeat(np.eye(2)[None], 3, axis=0),
+    )
+    aoa = (stamps, np.array([1, 1, 1, 1]), np.zeros(4), np.ones(4))
+    empty = np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2))
+    run = RunRecord(final, final, *empty, tag_history=history, aoa=aoa)
+    assert parallax_at_localization_deg(run, 1) == pytest.approx(180.0)
+    assert parallax_at_localization_deg(run, 2) is None

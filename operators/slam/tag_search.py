@@ -20,7 +20,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from rover.geometry import wrap_angle
+from rover.geometry import smallest_arc, wrap_angle
 from rover.operators.slam.search_scores import (
     FREE,
     Bearings,
@@ -255,7 +255,7 @@ def _on_all(found: Found, b: Bearings, s: SearchSettings) -> Found:
 def _parallax_deg(position: np.ndarray, seen_from: np.ndarray) -> float:
     """Spread of the directions from which a position was seen (deg)."""
     seen = position[None, :] - seen_from
-    return math.degrees(_spread(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0
+    return math.degrees(smallest_arc(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0
 
 
 def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found | None]:
@@ -287,10 +287,3 @@ def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found
 def _reach(robot_xy: np.ndarray, position: np.ndarray, s: SearchSettings) -> float:
     """How far from a position another hypothesis must be to be a different place."""
     return max(s.separation_m, 0.2 * float(np.median(np.linalg.norm(robot_xy - position, axis=1))))
-
-
-def _spread(angles: np.ndarray) -> float:
-    """Smallest arc (rad) that holds all the angles."""
-    a = np.sort(np.mod(angles, 2 * math.pi))
-    gaps = np.diff(np.concatenate([a, [a[0] + 2 * math.pi]]))
-    return float(2 * math.pi - gaps.max())

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from rover.errors import BadInput
-from rover.geometry import wrap_angle, yaw_from_quaternion
+from rover.geometry import smallest_arc, wrap_angle, yaw_from_quaternion
 
 
 @dataclass(frozen=True)
@@ -212,6 +212,7 @@ def evaluate(run: RunRecord, truth: Truth, max_diff_s: float = 0.01) -> dict[str
         entry: dict[str, Any] = {"nlos": bool(nlos), "localized": bool(np.isfinite(xy).all())}
         if entry["localized"]:
             entry["localized_after_s"] = localized_after_s(run, int(tag_id))
+            entry["parallax_at_localization_deg"] = parallax_at_localization_deg(run, int(tag_id))
             entry["error_m"] = float(np.linalg.norm(xy - reference))
             entry["aligned_error_m"] = float(np.linalg.norm(final.alignment.apply(xy[None])[0] - reference))
             entry["reported_std_m"] = float(math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
@@ -240,6 +241,26 @@ def localized_after_s(run: RunRecord, tag_id: int) -> float | None:
     if not mine.any() or tag_id not in run.heard:
         return None
     return float(stamps[mine].min() - run.heard[tag_id][0]) * 1e-9
+
+
+def parallax_at_localization_deg(run: RunRecord, tag_id: int) -> float | None:
+    """The spread (deg) of the directions from which the tag had been seen when it was first
+    published as localized: from its first localized position to the robot's positions (the final
+    trajectory) at its AoAs until then; what the geometry allowed so far (None: never localized, or
+    no AoA or pose to tell)."""
+    stamps, ids, xy, observable, _ = run.tag_history
+    mine = np.flatnonzero(observable & (ids == tag_id))
+    aoa_stamps = run.aoa[0][(run.aoa[1] == tag_id)]
+    if len(mine) == 0 or len(run.final.stamp_ns) == 0:
+        return None
+    first = mine[np.argmin(stamps[mine])]
+    seen = aoa_stamps[aoa_stamps <= stamps[first]]
+    if len(seen) == 0:
+        return None
+    t = run.final.stamp_ns.astype(np.float64)
+    robot = np.stack([np.interp(seen, t, run.final.xy[:, 0]), np.interp(seen, t, run.final.xy[:, 1])], axis=1)
+    d = robot - xy[first][None, :]
+    return math.degrees(smallest_arc(np.arctan2(d[:, 1], d[:, 0])))
 
 
 def published_honesty(run: RunRecord, truth: Truth, start: Rigid2D) -> dict[str, dict[str, Any]]:
@@ -308,15 +329,19 @@ def render(metrics: dict[str, Any]) -> str:
                 f"{cm(e['max_m']):>10}{e['poses']:>7}"
             )
     lines.append(f"  paper (Zhang et al.): robot mean {cm(PAPER_ROBOT_MEAN_M)}")
-    lines.append(f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}{'sigmas':>8}{'localized after':>17}")
+    lines.append(
+        f"{'tag':<8}{'error':>10}{'aligned':>10}{'reported std':>14}{'sigmas':>8}{'localized after':>17}"
+        f"{'seen over':>11}"
+    )
     for tag_id, t in metrics["tags"].items():
         label = f"{tag_id}{' NLOS' if t['nlos'] else ''}"
         if t["localized"]:
             sigmas = "-" if t["sigmas"] is None else f"{t['sigmas']:.1f}"
             after = "-" if t.get("localized_after_s") is None else f"{t['localized_after_s']:.1f} s"
+            seen = t.get("parallax_at_localization_deg")
             lines.append(
                 f"{label:<8}{cm(t['error_m']):>10}{cm(t['aligned_error_m']):>10}{cm(t['reported_std_m']):>14}"
-                f"{sigmas:>8}{after:>17}"
+                f"{sigmas:>8}{after:>17}{'-' if seen is None else f'{seen:.0f} deg':>11}"
             )
         else:
             lines.append(f"{label:<8}{'never localized':>34}")
