@@ -126,6 +126,8 @@ class RunOutputs(Operator):
         self.tags: dict[int, _TagRecord] = {}
         self.history: list[tuple[int, int, float, float, bool, float, float, float, float]] = []
         self.aoa: list[tuple[int, int, float, float]] = []
+        self.seen: list[tuple[int, int]] = []
+        """(stamp, tag id) of every bearing, resolved or not"""
         self.timing: dict[str, list[float]] = {}
         self.written: list[str] = []
         """the files this run wrote, by name (staged until the run's end)"""
@@ -160,6 +162,7 @@ class RunOutputs(Operator):
             s = stamp_ns(msg)
             record.first_heard = s if record.first_heard is None else min(record.first_heard, s)
             record.last_heard = s if record.last_heard is None else max(record.last_heard, s)
+            self.seen.append((s, msg.tag_id))
             if msg.chosen >= 0:
                 self.aoa.append((s, msg.tag_id, msg.angle_rad, msg.std_rad))
             else:
@@ -324,6 +327,7 @@ class RunOutputs(Operator):
                 for i, r in self.tags.items()
                 if r.first_heard is not None and r.last_heard is not None
             },
+            self.seen,
         )
         try:
             metrics = evaluate(run, truth)

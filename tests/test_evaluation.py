@@ -383,8 +383,9 @@ def test_the_time_each_tag_took_to_be_localized_counts_from_its_first_aoa():
 
 
 def test_the_parallax_a_tag_had_when_first_localized():
-    """Seen from the robot's positions at its AoAs until its first localized estimate: the robot at
-    (0, 0), (2, 0) and (2, 2) seen from a tag at (1, 1) spans 180 deg; an AoA after it adds nothing."""
+    """Seen from the robot's positions at its AoAs until its first localized estimate, those the
+    SLAM could not resolve yet included: the robot at (0, 0), (2, 0) and (2, 2) seen from a tag at
+    (1, 1) spans 180 deg; an AoA after it adds nothing."""
     from rover.evaluation.metrics import parallax_at_localization_deg
 
     stamps = np.array([1, 2, 3, 4], dtype=np.int64) * 1_000_000_000
@@ -396,8 +397,11 @@ def test_the_parallax_a_tag_had_when_first_localized():
         np.array([False, True, True]),
         np.repeat(np.eye(2)[None], 3, axis=0),
     )
-    aoa = (stamps, np.array([1, 1, 1, 1]), np.zeros(4), np.ones(4))
+    resolved = (stamps[2:], np.array([1, 1]), np.zeros(2), np.ones(2))  # the SLAM resolved these once it had the tag
+    every = (stamps, np.array([1, 1, 1, 1]))
     empty = np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2))
-    run = RunRecord(final, final, *empty, tag_history=history, aoa=aoa)
+    run = RunRecord(final, final, *empty, tag_history=history, aoa=resolved, seen=every)
     assert parallax_at_localization_deg(run, 1) == pytest.approx(180.0)
     assert parallax_at_localization_deg(run, 2) is None
+    older = RunRecord(final, final, *empty, tag_history=history, aoa=resolved)  # a run folder without them
+    assert parallax_at_localization_deg(older, 1) == pytest.approx(0.0)

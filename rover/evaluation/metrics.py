@@ -159,6 +159,8 @@ class RunRecord:
     """(stamp_ns, tag id, robot-frame angle, reported std) of every AoA"""
     heard: dict[int, tuple[int, int]] = field(default_factory=dict)
     """tag id -> (first, last) stamp it was heard at, ns (tags.csv's first_heard_s, last_heard_s)"""
+    seen: tuple[np.ndarray, np.ndarray] = field(default_factory=lambda: (np.zeros(0, np.int64), np.zeros(0, int)))
+    """(stamp_ns, tag id) of every AoA the SLAM had, resolved or not (those before a tag was found too)"""
 
 
 @dataclass(frozen=True)
@@ -250,7 +252,8 @@ def parallax_at_localization_deg(run: RunRecord, tag_id: int) -> float | None:
     no AoA or pose to tell)."""
     stamps, ids, xy, observable, _ = run.tag_history
     mine = np.flatnonzero(observable & (ids == tag_id))
-    aoa_stamps = run.aoa[0][(run.aoa[1] == tag_id)]
+    every = run.seen if len(run.seen[0]) else run.aoa[:2]
+    aoa_stamps = every[0][every[1] == tag_id]
     if len(mine) == 0 or len(run.final.stamp_ns) == 0:
         return None
     first = mine[np.argmin(stamps[mine])]

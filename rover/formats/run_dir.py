@@ -68,18 +68,21 @@ def _optional_float(row: dict[str, str], column: str, where: str) -> float:
     return csv_float(row, column, where) if row.get(column, "").strip() else math.nan
 
 
-def _read_results(
-    path: Path,
-) -> tuple[list[tuple[int, int, float, float, bool, float, float, float, float]], list[tuple[int, int, float, float]]]:
-    """Tag estimates over time and the AoAs from results.mcap (empty when the file is absent): the
-    AoAs as the SLAM used them (`/rover/bearings`, those it resolved) when the run recorded them."""
+Estimates = list[tuple[int, int, float, float, bool, float, float, float, float]]
+
+
+def _read_results(path: Path) -> tuple[Estimates, list[tuple[int, int, float, float]], list[tuple[int, int]]]:
+    """Tag estimates over time, the AoAs, and (stamp, tag id) of every AoA from results.mcap (empty
+    when the file is absent): the AoAs as the SLAM used them (`/rover/bearings`, those it resolved)
+    when the run recorded them."""
     from rover.formats.bag import BagReader
 
-    history: list[tuple[int, int, float, float, bool, float, float, float, float]] = []
+    history: Estimates = []
     aoa: dict[str, list[tuple[int, int, float, float]]] = {"/rover/aoa": [], "/rover/bearings": []}
+    seen: list[tuple[int, int]] = []
     resolved_recorded = False
     if not path.exists():
-        return history, []
+        return history, [], seen
     with BagReader(path, "cannot read") as bag:
         for m in bag.messages(RESULT_TYPES):
             msg = bag.decode(m, RESULT_TYPES[m.topic])
@@ -88,11 +91,14 @@ def _read_results(
                 history += [tag_entry(stamp, t) for t in msg.tags]
             elif m.topic == "/rover/bearings":
                 resolved_recorded = True
+                seen.append((stamp, msg.tag_id))
                 if msg.chosen >= 0:
                     aoa[m.topic].append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
             else:
                 aoa[m.topic].append((stamp, msg.tag_id, msg.angle_rad, msg.std_rad))
-    return history, aoa["/rover/bearings"] if resolved_recorded else aoa["/rover/aoa"]
+    if resolved_recorded:
+        return history, aoa["/rover/bearings"], seen
+    return history, aoa["/rover/aoa"], [(a[0], a[1]) for a in aoa["/rover/aoa"]]
 
 
 def tag_entry(stamp: int, tag: Any) -> tuple[int, int, float, float, bool, float, float, float, float]:
@@ -108,6 +114,7 @@ def record(
     history: list[tuple[int, int, float, float, bool, float, float, float, float]],
     aoa: list[tuple[int, int, float, float]],
     heard: dict[int, tuple[int, int]] | None = None,
+    seen: list[tuple[int, int]] | None = None,
 ) -> RunRecord:
     h = np.array(history, dtype=object).reshape(-1, 9)
     a = np.array(aoa, dtype=object).reshape(-1, 4)
@@ -124,6 +131,10 @@ def record(
         ),
         aoa=(a[:, 0].astype(np.int64), a[:, 1].astype(int), a[:, 2].astype(float), a[:, 3].astype(float)),
         heard=dict(heard or {}),
+        seen=(
+            np.array([v[0] for v in seen or []], dtype=np.int64),
+            np.array([v[1] for v in seen or []], dtype=int),
+        ),
     )
 
 
@@ -143,9 +154,9 @@ def load_run(run_dir: str | Path) -> RunRecord:
         if (run_dir / "tags.csv").exists()
         else (np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2)))
     )
-    history, aoa = _read_results(run_dir / "results.mcap")
+    history, aoa, seen = _read_results(run_dir / "results.mcap")
     heard = _read_heard(run_dir / "tags.csv") if (run_dir / "tags.csv").exists() else {}
-    return record(final, live, tags, history, aoa, heard)
+    return record(final, live, tags, history, aoa, heard, seen)
 
 
 RUN_STATUSES = ("", *get_args(RunStatus))
