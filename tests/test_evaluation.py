@@ -122,6 +122,23 @@ def make_run(tmp_path: Path) -> tuple[Path, Path, Path]:
     return run, reference, tags
 
 
+NO_POSES = Poses2D(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0))
+
+
+def estimates_only(stamps, ids, xy, observable, cov, **extra) -> RunRecord:
+    """A run record of published tag estimates alone (no poses, no AoAs)."""
+    return RunRecord(
+        NO_POSES,
+        NO_POSES,
+        np.zeros(0, int),
+        np.zeros((0, 2)),
+        np.zeros((0, 2, 2)),
+        tag_history=(stamps, ids, xy, observable, cov),
+        aoa=(np.zeros(0, np.int64), np.zeros(0, int), np.zeros(0), np.zeros(0)),
+        **extra,
+    )
+
+
 def test_published_estimates_are_judged_in_their_own_covariance():
     """Every estimate published as localized counts, in the standard deviations of the covariance
     it was published with (along its major axis here: 4 sigma is 0.4 m on a 10 cm std), LOS and
@@ -138,23 +155,14 @@ def test_published_estimates_are_judged_in_their_own_covariance():
     where = {1: np.array([2.0, 3.0]), 4: np.array([-1.0, 1.0]), 9: np.array([0.0, 0.0])}
     ids = np.array([r[0] for r in rows])
     xy = np.array([where[r[0]] + [r[1], r[2]] for r in rows])
-    empty = Poses2D(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0))
-    run = RunRecord(
-        empty,
-        empty,
-        np.zeros(0, int),
-        np.zeros((0, 2)),
-        np.zeros((0, 2, 2)),
-        tag_history=(
-            np.arange(len(rows), dtype=np.int64),
-            ids,
-            xy,
-            np.array([r[3] for r in rows]),
-            np.repeat(stretched[None], len(rows), axis=0),
-        ),
-        aoa=(np.zeros(0, np.int64), np.zeros(0, int), np.zeros(0), np.zeros(0)),
+    run = estimates_only(
+        np.arange(len(rows), dtype=np.int64),
+        ids,
+        xy,
+        np.array([r[3] for r in rows]),
+        np.repeat(stretched[None], len(rows), axis=0),
     )
-    truth = Truth(empty, {1: (where[1], False), 4: (where[4], True)})
+    truth = Truth(NO_POSES, {1: (where[1], False), 4: (where[4], True)})
     honesty = published_honesty(run, truth, Rigid2D(np.eye(2), np.zeros(2)))
     assert honesty["nlos"]["estimates"] == 10 and honesty["nlos"]["beyond_3_sigma"] == pytest.approx(0.2)
     assert honesty["nlos"]["sigmas_median"] == pytest.approx(1.0)
@@ -359,22 +367,13 @@ def test_the_time_each_tag_took_to_be_localized_counts_from_its_first_aoa():
     none for a tag published only with its prior, or never heard."""
     from rover.evaluation.metrics import localized_after_s
 
-    empty = Poses2D(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0))
     rows = [(5_000_000_000, 1, False), (7_500_000_000, 1, True), (9_000_000_000, 1, True), (8_000_000_000, 2, False)]
-    run = RunRecord(
-        empty,
-        empty,
-        np.zeros(0, int),
-        np.zeros((0, 2)),
-        np.zeros((0, 2, 2)),
-        tag_history=(
-            np.array([r[0] for r in rows], dtype=np.int64),
-            np.array([r[1] for r in rows]),
-            np.zeros((len(rows), 2)),
-            np.array([r[2] for r in rows]),
-            np.repeat(np.eye(2)[None], len(rows), axis=0),
-        ),
-        aoa=(np.zeros(0, np.int64), np.zeros(0, int), np.zeros(0), np.zeros(0)),
+    run = estimates_only(
+        np.array([r[0] for r in rows], dtype=np.int64),
+        np.array([r[1] for r in rows]),
+        np.zeros((len(rows), 2)),
+        np.array([r[2] for r in rows]),
+        np.repeat(np.eye(2)[None], len(rows), axis=0),
         heard={1: (1_250_000_000, 9_000_000_000), 2: (1_000_000_000, 8_000_000_000)},
     )
     assert localized_after_s(run, 1) == pytest.approx(6.25)
