@@ -7,25 +7,35 @@ import typing
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from rover.errors import BadInput, Diagnostic, SpecError
 from rover.pipeline import params as P
-from rover.pipeline.params import Fraction, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
+from rover.pipeline.params import Fraction, NonNegativeFloat, PositiveFloat, PositiveInt, Range
 from rover.pipeline.spec import did_you_mean, read_yaml_text
 from rover.pipeline.yamlpos import Located, load, parse_scalar
+
+Decibels = Annotated[float, Range(ge=-40, le=80)]
+"""a signal-to-noise ratio within what a receiver meets (beyond it the CSI is all noise, or exact)"""
+Loss = Annotated[float, Range(ge=0, le=60)]
+"""a loss in dB (beyond 60 dB a path is gone: leave it out instead)"""
+MAX_SCATTERERS = 1000
+"""the simulation holds a path per scatterer for every packet"""
 
 
 @dataclass(frozen=True)
 class Room:
     size_m: tuple[PositiveFloat, PositiveFloat] = (9.0, 5.0)
     wall_reflection: Fraction = 0.5
-    scatterers: NonNegativeInt = 0
+    scatterers: Annotated[int, Range(ge=0, le=MAX_SCATTERERS)] = 0
     """point scatterers (furniture, people, shelves) placed at random in the room, each a path
     tag -> scatterer -> robot (rover.datasets.clutter)"""
-    scatterer_reflectivity_m: tuple[PositiveFloat, NonNegativeFloat] = (0.15, 6.0)
+    scatterer_reflectivity_m: tuple[Annotated[float, Range(gt=0, le=10)], Annotated[float, Range(ge=0, le=20)]] = (
+        0.15,
+        6.0,
+    )
     """their amplitude reflectivity: median (m) and log-normal spread (dB of power)"""
-    shadowing_db: NonNegativeFloat = 0.0
+    shadowing_db: Loss = 0.0
     """std of each tag's direct path's shadow fading along the robot's path (0: none)"""
     shadowing_distance_m: PositiveFloat = 1.5
     """distance along the path over which the shadowing decorrelates (to 1/e)"""
@@ -55,11 +65,11 @@ class Receiver:
     dwell_s: PositiveFloat = 0.05
     hop_gap_s: NonNegativeFloat = 0.005
     latency_ms: tuple[float, float] = (0.3, 0.5)
-    snr_db: tuple[float, float] = (20.0, 30.0)
+    snr_db: tuple[Decibels, Decibels] = (20.0, 30.0)
     phase_offsets_rad: list[float] = field(default_factory=lambda: [0.0, 0.9, -1.7])
     calibration_error_deg: NonNegativeFloat = 3.0
     sampling_offset_ns: tuple[float, float] = (0.0, 100.0)
-    nlos_attenuation_db: tuple[float, float] = (10.0, 15.0)
+    nlos_attenuation_db: tuple[Loss, Loss] = (10.0, 15.0)
     agc_peak: tuple[float, float] = (40.0, 90.0)
     jumps_per_run: bool = False
     """each chain's phase comes back shifted by a random multiple of the jump step (pi at 5 GHz,

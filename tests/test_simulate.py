@@ -159,6 +159,28 @@ def test_scenario_mistakes_are_reported():
         load_scenario("paper", {"receiver.range_m": "far"})
 
 
+@pytest.mark.parametrize(
+    ("setting", "problem"),
+    [
+        ("room.scatterers=100000", "room.scatterers: must be >= 0 and <= 1000, got 100000"),
+        ("room.shadowing_db=1e300", "room.shadowing_db: must be >= 0 and <= 60"),
+        ("room.scatterer_reflectivity_m=[1e300,6]", "room.scatterer_reflectivity_m: must be > 0 and <= 10"),
+        ("receiver.nlos_attenuation_db=[-1e300,0]", "receiver.nlos_attenuation_db: must be >= 0 and <= 60"),
+        ("receiver.snr_db=[-1e300,0]", "receiver.snr_db: must be >= -40 and <= 80"),
+    ],
+)
+def test_radio_values_beyond_physics_are_one_line_naming_the_key(tmp_path, capsys, setting, problem):
+    """They used to reach the record encoder as infinite CSI (a traceback: "CSI values must fit in
+    int8") or, for the scatterers, an allocation of packets x scatterers paths."""
+    from rover.cli.app import main
+
+    out = tmp_path / "out.mcap"
+    assert main(["simulate", "--seed", "1", "--set", setting, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert problem in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
 def test_an_output_that_is_a_directory_is_one_line_before_any_work(tmp_path, capsys):
     from rover.cli.app import main
 
