@@ -18,6 +18,7 @@ from rover.operators.slam.integrity import (
     inflation,
     jackknife_covariance,
     small_sample_factor,
+    variance_factor,
 )
 
 TAG = np.array([3.0, 2.0])
@@ -151,18 +152,18 @@ def test_a_tag_is_judged_on_the_bearings_it_has_when_due():
     trust = TagIntegrity()
     trust.start(0, robot[:100], angles[:100], stds[:100])
     cov = np.eye(2) * 1e-6
-    trust.judge(0, TAG, cov, HUBER)
+    trust.judge(0, TAG, cov, HUBER, 1.0)
     first = trust.scale[0]
     assert first > 1.0 and trust.due[0] == EVERY_BEARINGS
     np.testing.assert_allclose(trust.scaled(np.stack([cov, cov]))[0], first * cov)
     np.testing.assert_array_equal(trust.scaled(np.stack([cov, cov]))[1], cov)  # a tag not judged keeps its own
     for r, a, s in zip(robot[100 : 100 + EVERY_BEARINGS - 1], angles[100:], stds[100:], strict=False):
         trust.add(0, r, float(a), float(s))
-    trust.judge(0, TAG, cov, HUBER)
+    trust.judge(0, TAG, cov, HUBER, 1.0)
     assert trust.scale[0] == first, "not due yet: the last jackknife holds"
     trust.add(0, robot[150], float(angles[150]), float(stds[150]))
     assert trust.due[0] == 0
-    trust.judge(0, TAG, cov, HUBER)
+    trust.judge(0, TAG, cov, HUBER, 1.0)
     assert trust.due[0] == EVERY_BEARINGS and len(trust.seen[0]) == 100 + EVERY_BEARINGS
     trust.scale[0] = math.inf
     assert np.all(np.isinf(trust.scaled(cov[None])[0])), "a tag the jackknife cannot pin is published unlocalized"
@@ -179,3 +180,23 @@ def test_a_tag_whose_bearings_keep_disagreeing_is_re_examined():
     assert disagreeing(counts, tags, most, localized, 3) == [0] and counts[0] == 0
     assert disagreeing(counts, tags, most, np.array([False, True]), 3) == [] and counts[0] == 0
     assert disagreeing(counts, tags, most, localized, 0) == []
+
+
+def test_the_variance_factor_says_how_much_wider_the_bearings_scatter_than_stated():
+    """Residuals twice as wide as the bursts' stds say give about 4 (the window's stds are the
+    bursts' times the scale); a tenth of them wild (a wall's image) moves it by less than half
+    where a mean square would be 50 times over; as stated, about 1. About: within 3 of the spread
+    of a median-based variance from 1,000 bearings (its relative std sqrt(5.4 / n) = 7%)."""
+    robot = rectangle(step_m=0.02)
+    rng = np.random.default_rng(9)
+    burst = np.full(len(robot), math.radians(2.0))
+    wide = rng.normal(0.0, math.radians(4.0), len(robot))
+    clean = variance_factor(TAG, robot, bearings(robot, TAG, wide), burst * 4, 4.0)
+    assert clean == pytest.approx(4.0, rel=0.22)
+    wide[::10] = rng.uniform(-math.pi, math.pi, len(wide[::10]))
+    wild = variance_factor(TAG, robot, bearings(robot, TAG, wide), burst * 4, 4.0)
+    assert clean < wild < 1.5 * clean
+    assert np.mean((wide / burst) ** 2) > 50 * clean
+    stated = rng.normal(0.0, math.radians(2.0), len(robot))
+    assert variance_factor(TAG, robot, bearings(robot, TAG, stated), burst, 1.0) == pytest.approx(1.0, rel=0.22)
+    assert variance_factor(TAG, robot[:0], np.zeros(0), np.zeros(0), 4.0) == 0.0

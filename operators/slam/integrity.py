@@ -20,6 +20,11 @@ c = 2 (B - 1) / (B - 2) F^-1(p; 2, B - 2) / chi2^-1(p; 2) at p = 98.9% (3 sigma 
 keeps errors beyond 3 sigma of the published covariance at a 2-D Gaussian's 1.1% (1.4 at 20 cells,
 2.7 at 8). It cannot see a bias every view shares (a scatterer beside the tag shifts it alike from
 everywhere).
+
+Nor can it see bearings that scatter more than their bursts say all over (an NLOS tag: the wall's
+image blends into every burst): so the published covariance is also at least the window's times
+the variance factor, the square of the robust spread of the residuals in the bursts' own stds,
+when that is above 1 (`paper` seed 2: the NLOS tag 3% of its estimates beyond 3 sigma -> 0%).
 """
 
 from __future__ import annotations
@@ -43,6 +48,8 @@ ITERATIONS = 4
 HISTORY_BEARINGS = 4000
 """bearings kept per tag (the latest)"""
 THREE_SIGMA = 3.0
+MAD_TO_STD = 1.4826
+"""a Gaussian's std over its median absolute deviation"""
 
 
 def jackknife_covariance(
@@ -75,6 +82,20 @@ def jackknife_covariance(
             return np.full((2, 2), np.inf)  # leaving a cell out leaves the tag unconstrained
     dev = q - q.mean(axis=0)
     return (count - 1) / count * dev.T @ dev * small_sample_factor(count)
+
+
+def variance_factor(
+    position: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, aoa_std_scale: float
+) -> float:
+    """How much larger the bearings' scatter about `position` is than their bursts say: the square of
+    the robust spread (1.4826 times the median absolute residual) of the residuals in the bursts'
+    own stds (the window's `stds` over `aoa_std_scale`); about 1 when the stds are right, 0 without
+    bearings."""
+    if len(robot) == 0:
+        return 0.0
+    d = position[None, :] - robot
+    r = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - angles) / (stds / aoa_std_scale)
+    return float((MAD_TO_STD * np.median(np.abs(r))) ** 2)
 
 
 def small_sample_factor(cells: int) -> float:
@@ -125,6 +146,8 @@ class TagIntegrity:
     jackknife: dict[int, np.ndarray | None] = field(default_factory=dict)
     due: dict[int, int] = field(default_factory=dict)
     """per slot: bearings to come before its next jackknife"""
+    factor: dict[int, float] = field(default_factory=dict)
+    """per slot: its bearings' latest variance factor"""
     scale: dict[int, float] = field(default_factory=dict)
     """per slot: the factor its window covariance is published with (`judge`)"""
 
@@ -142,15 +165,20 @@ class TagIntegrity:
         del kept[:-HISTORY_BEARINGS]
         self.due[tag_slot] = self.due.get(tag_slot, EVERY_BEARINGS) - 1
 
-    def judge(self, tag_slot: int, position: np.ndarray, covariance: np.ndarray, huber_sigma: float) -> None:
-        """Set `scale[tag_slot]`, how much the tag's window covariance is scaled up to be published
-        (the jackknife re-estimated every EVERY_BEARINGS bearings, with the window's Huber
-        threshold)."""
+    def judge(
+        self, tag_slot: int, position: np.ndarray, covariance: np.ndarray, huber_sigma: float, aoa_std_scale: float
+    ) -> None:
+        """Set `scale[tag_slot]`, how much the tag's window covariance is scaled up to be published:
+        enough to cover the jackknife, and the variance factor of its bearings when above 1 (both
+        re-estimated every EVERY_BEARINGS bearings, with the window's Huber threshold and scale)."""
         if self.due.get(tag_slot, 1) <= 0:
             rows = np.array(self.seen.get(tag_slot, [])).reshape(-1, 4)
-            self.jackknife[tag_slot] = jackknife_covariance(position, rows[:, :2], rows[:, 2], rows[:, 3], huber_sigma)
+            robot, angles, stds = rows[:, :2], rows[:, 2], rows[:, 3]
+            self.jackknife[tag_slot] = jackknife_covariance(position, robot, angles, stds, huber_sigma)
+            self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
             self.due[tag_slot] = EVERY_BEARINGS
-        self.scale[tag_slot] = inflation(covariance, self.jackknife.get(tag_slot))
+        k = inflation(covariance, self.jackknife.get(tag_slot))
+        self.scale[tag_slot] = max(k, self.factor.get(tag_slot, 0.0))
 
     def scaled(self, covariances: np.ndarray) -> np.ndarray:
         """The tags' covariances (tags, 2, 2) as published: each scaled by its `scale`."""

@@ -551,13 +551,14 @@ class SlidingWindow:
     def _covariances(self, epoch, tag, residual, jb, filled) -> None:
         """The tags' and shared states' covariances from the Gauss-Newton information at the estimate
         (Huber rows IRLS-weighted)."""
-        w = np.where(filled, huber_weight(residual, self.settings.huber_sigma), 0.0)
+        s = self.settings
+        w = np.where(filled, huber_weight(residual, s.huber_sigma), 0.0)
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
         info = window_information(self.shape, self._prior.info, self.edges, self.epochs, epoch, coeff)
         self.tag_covariance, self.bias_covariance = covariances(info, self.shape)
         for t, cov in enumerate(self.tag_covariance):
             if self.active[t]:
-                self.integrity.judge(t, self.x[self.shape.tag(t)], cov, self.settings.huber_sigma)
+                self.integrity.judge(t, self.x[self.shape.tag(t)], cov, s.huber_sigma, s.aoa_std_scale)
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`); worked
@@ -581,9 +582,7 @@ class SlidingWindow:
             jump = int(old.candidate_jumps[j, old.choice[j]])
             if jump >= 0:
                 self.jumps.learn(int(old.tags[j]), jump)
-            self.integrity.add(
-                int(old.tags[j]), x[0:2], old.candidates[j, old.choice[j]], old.std[j] * self.settings.aoa_std_scale
-            )
+            self.integrity.add(int(old.tags[j]), x[0:2], old.candidates[j, old.choice[j]], old.std[j])
         leaving = Leaving(old.velocity_info, old.velocity_linear, old.tags[use], old.bearing[use], old.std[use])
         self.prior = marginalize_oldest(self._prior, own, leaving, edge, self.settings, self.accel_biases, self.scale)
         self.finals.append((old.stamp_ns, float(x[0]), float(x[1]), old.yaw))
