@@ -3,7 +3,9 @@ their calibration (`none`), are off it by a random multiple of pi per channel fo
 (`once`, the scenario's default), draw a new multiple at every retune (`retune`), or step by pi at
 random moments and stay so, 1 or 3 times a minute (`steps1`, `steps3`), and, with the jump per run,
 in a cluttered room whose bearings have heavy, persistent errors (`clutter`: 10 scatterers, the
-direct path shadowed by 4 dB; docs/datasets.md), same seeds. Goals
+direct path shadowed by 4 dB; docs/datasets.md), same seeds: `paper` seeds 1-6 and `long_hall`
+seed 1 (`--seeds 1 2 --hall-seeds` for a quick subset). Per tag: the seconds from its first AoA to
+its first localization and the parallax it had been seen over by then. Goals
 (bench/goals.yaml): tags as good as without jumps, every tag heard localized within 20 s of its
 first AoA, and no more than 1% of the published localized estimates beyond 3 sigma of their own
 covariance."""
@@ -31,10 +33,17 @@ REGIMES = {
 }
 
 
-def run(seed: int, regime: str, work: Path) -> dict[str, Any]:
-    dataset = work / f"paper-{seed}-{regime}.mcap"
-    subprocess.run([*ROVER, "simulate", "--seed", str(seed), *REGIMES[regime], "-o", str(dataset)], check=True)
-    out = work / f"run-{seed}-{regime}"
+SCENARIOS = {"paper": "seed", "long_hall": "hall"}
+"""each scenario's key prefix in the figures: paper's seed 1 with jumps per retune is `seed1_retune`"""
+
+
+def run(scenario: str, seed: int, regime: str, work: Path) -> dict[str, Any]:
+    dataset = work / f"{scenario}-{seed}-{regime}.mcap"
+    subprocess.run(
+        [*ROVER, "simulate", "--scenario", scenario, "--seed", str(seed), *REGIMES[regime], "-o", str(dataset)],
+        check=True,
+    )
+    out = work / f"run-{scenario}-{seed}-{regime}"
     subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out)], check=True)
     m = json.loads((out / "metrics.json").read_text())
     tags = m.get("tags", {})
@@ -54,6 +63,11 @@ def run(seed: int, regime: str, work: Path) -> dict[str, Any]:
             int(i): t["localized_after_s"] for i, t in tags.items() if isinstance(t, dict) and t.get("localized")
         },
         "localized_after_median_s": float(np.median(after)) if after else None,
+        "parallax_at_localization_deg": {
+            int(i): t["parallax_at_localization_deg"]
+            for i, t in tags.items()
+            if isinstance(t, dict) and t.get("localized")
+        },
         "localized_after_max_s": max(after, default=None),
         "los_beyond_3_sigma": published.get("los", {}).get("beyond_3_sigma"),
         "nlos_beyond_3_sigma": published.get("nlos", {}).get("beyond_3_sigma"),
@@ -66,18 +80,20 @@ def cm(v: float | None) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6], help="paper's seeds")
+    ap.add_argument("--hall-seeds", type=int, nargs="*", default=[1], help="long_hall's seeds (none: skip it)")
     ap.add_argument("--regimes", nargs="+", choices=list(REGIMES), default=list(REGIMES))
     ap.add_argument("--json", type=Path, help="also write the figures here")
     args = ap.parse_args()
     figures: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for seed in args.seeds:
-            for regime in args.regimes:
-                figures[f"seed{seed}_{regime}"] = run(seed, regime, Path(tmp))
+        for scenario, seeds in (("paper", args.seeds), ("long_hall", args.hall_seeds)):
+            for seed in seeds:
+                for regime in args.regimes:
+                    figures[f"{SCENARIOS[scenario]}{seed}_{regime}"] = run(scenario, seed, regime, Path(tmp))
     print(
         f"{'run':<14}{'robot cm':>10}{'LOS tags cm':>13}{'NLOS tag cm':>13}  localized  AoA LOS/NLOS deg"
-        "  >3 sigma LOS/NLOS  s to localize  ratio to none"
+        "  >3 sigma LOS/NLOS  s to localize  deg seen over  ratio to none"
     )
     for key, f in figures.items():
         seed, regime = key.split("_")
@@ -88,10 +104,11 @@ def main() -> None:
         )
         aoa = f"{f['aoa_los_median_deg'] or float('nan'):.1f}/{f['aoa_nlos_median_deg'] or float('nan'):.1f}"
         after = ",".join(f"{v:.0f}" for _, v in sorted(f["localized_after_s"].items()) if v is not None) or "-"
+        seen = ",".join(f"{v:.0f}" for _, v in sorted(f["parallax_at_localization_deg"].items()) if v is not None)
         beyond = "/".join("-" if v is None else f"{v:.0%}" for v in (f["los_beyond_3_sigma"], f["nlos_beyond_3_sigma"]))
         print(
             f"{key:<14}{cm(f['robot_mean_m']):>10}{cm(f['los_tags_mean_m']):>13}{cm(f['nlos_tag_m']):>13}"
-            f"  {','.join(map(str, f['localized'])):<9}  {aoa:<16}  {beyond:<17}  {after:<14} "
+            f"  {','.join(map(str, f['localized'])):<9}  {aoa:<16}  {beyond:<17}  {after:<14} {seen or '-':<14} "
             f"{ratio if regime != 'none' else ''}"
         )
     if args.json:
