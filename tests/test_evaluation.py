@@ -316,6 +316,14 @@ def test_eval_against_a_three_byte_truth_is_one_line(tmp_path, capsys):
     )
 
 
+def test_eval_given_the_tags_csv_as_its_trajectory_truth_says_where_it_goes(tmp_path, capsys):
+    run, _reference, tags = make_run(tmp_path)
+    assert one_error_line(capsys, ["eval", str(run), "--truth", str(tags)]) == (
+        f"rover: error: {tags}: a CSV is not a trajectory: the truth is a dataset (.mcap, or a bag folder) or a "
+        "TUM file (.tum, .txt); tag positions go to --tags"
+    )
+
+
 def test_eval_of_a_run_outside_the_truths_time_is_one_line(tmp_path, capsys):
     run, _reference, tags = make_run(tmp_path)
     t, xy, yaw = square_path(20)

@@ -218,6 +218,11 @@ def load_truth(source: str | Path, tags_csv: str | Path | None = None) -> Truth 
     tags: list[TruthTag]
     if source.suffix in (".tum", ".txt"):
         trajectory, tags = _in_time_order(read_tum(source)), []
+    elif source.suffix == ".csv":
+        raise BadInput(
+            f"{source}: a CSV is not a trajectory: the truth is a dataset (.mcap, or a bag folder) or a TUM file "
+            "(.tum, .txt); tag positions go to --tags"
+        )
     else:
         if source.is_dir():
             candidates = sorted(source.glob("*.mcap"))
