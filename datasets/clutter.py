@@ -22,6 +22,12 @@ SHADOW_STEP_M = 0.05
 """path-length spacing at which the shadowing is drawn before it is interpolated to the poses"""
 WALL_MARGIN_M = 0.3
 """scatterers stand at least this far from the walls"""
+PATH_CLEARANCE_M = 0.5
+"""and this far from the robot's path"""
+CHUNK_PLACES = 256
+"""candidate places checked against the path at once"""
+DRAWS_PER_SCATTERER = 20
+"""candidate places drawn per scatterer"""
 
 
 @dataclass(frozen=True)
@@ -34,17 +40,34 @@ class Scatterers:
 
 
 def place_scatterers(
-    room_m: tuple[float, float], count: int, median_m: float, spread_db: float, rng: np.random.Generator
+    room_m: tuple[float, float],
+    count: int,
+    median_m: float,
+    spread_db: float,
+    rng: np.random.Generator,
+    path_xy: np.ndarray | None = None,
 ) -> Scatterers:
-    """`count` scatterers uniform over the room (WALL_MARGIN_M from its walls), their reflectivity
-    log-normal: median `median_m`, a standard deviation of `spread_db` in power (the heavy tail:
-    a metal shelf among chairs)."""
+    """`count` scatterers uniform over the room (WALL_MARGIN_M from its walls) and PATH_CLEARANCE_M
+    from the robot's path (points along it a few centimetres apart, `path_xy`: the robot drives
+    around furniture, not through it), their reflectivity log-normal: median `median_m`, a standard deviation of
+    `spread_db` in power (the heavy tail: a metal shelf among chairs). Fewer when the room leaves
+    too little space off the path (none after DRAWS_PER_SCATTERER tries each)."""
     w, h = room_m
+    tries = DRAWS_PER_SCATTERER * count
     xy = np.stack(
-        [rng.uniform(WALL_MARGIN_M, w - WALL_MARGIN_M, count), rng.uniform(WALL_MARGIN_M, h - WALL_MARGIN_M, count)],
+        [rng.uniform(WALL_MARGIN_M, w - WALL_MARGIN_M, tries), rng.uniform(WALL_MARGIN_M, h - WALL_MARGIN_M, tries)],
         axis=1,
     )
-    reflectivity = median_m * 10 ** (rng.normal(0.0, spread_db, count) / 20)
+    if path_xy is not None and len(path_xy) and len(xy):
+        gap = np.concatenate(
+            [
+                np.min(np.linalg.norm(part[:, None, :] - path_xy[None, :, :], axis=-1), axis=1)
+                for part in np.array_split(xy, -(-len(xy) // CHUNK_PLACES))
+            ]
+        )
+        xy = xy[gap >= PATH_CLEARANCE_M]
+    xy = xy[:count]
+    reflectivity = median_m * 10 ** (rng.normal(0.0, spread_db, len(xy)) / 20)
     return Scatterers(xy, reflectivity)
 
 

@@ -38,6 +38,8 @@ JUMP_STREAM = 14
 """the phase jumps draw from their own random stream, so turning them on changes nothing else"""
 STEP_STREAM = 15
 """the persistent steps draw from a stream of their own too"""
+PATH_STEP_S = 0.25
+"""the robot's path, as the scatterers keep clear of it: a point every this many seconds"""
 CLUTTER_STREAM = 16
 """the clutter (scatterers and shadowing) draws from a stream of its own"""
 JUMP_DRAWS = 4
@@ -217,7 +219,10 @@ def simulate(
     heard = np.zeros(len(true_t), dtype=bool)
     csi = np.zeros((len(true_t), 30, len(antennas)), dtype=np.complex128)
     clutter_rng = np.random.default_rng([seed, CLUTTER_STREAM])
-    scatterers = place_scatterers(room, scenario.room.scatterers, *scenario.room.scatterer_reflectivity_m, clutter_rng)
+    path = motion.state(np.arange(0.0, duration, PATH_STEP_S)).xy
+    scatterers = place_scatterers(
+        room, scenario.room.scatterers, *scenario.room.scatterer_reflectivity_m, clutter_rng, path
+    )
     for i, tag in enumerate(scenario.tags):
         mine = owner == i
         position = np.array(tag.position_m, dtype=np.float64)
