@@ -6,7 +6,7 @@ as long as the geometry holds (seconds at walking speed), and again each time th
 same place (rover.datasets.clutter; a real building's arrays: errors persisting for seconds). The
 window weighs them as independent (their burst stds scaled by `aoa_std_scale`), so where the
 clutter is heavy its covariance can be several times too small: `paper` seed 2 in a cluttered room
-published a tag 40 cm off at 6 sigma of a 7 cm std.
+(scatterers then allowed on the robot's path) published a tag 40 cm off at 6 sigma of a 7 cm std.
 
 So the bearings of a localized tag that left the window are grouped by the cell (CELL_M) the robot
 took them from, the tag is re-estimated leaving out each cell in turn (robust least squares on the
