@@ -165,21 +165,23 @@ def free_cost(q: np.ndarray, b: Bearings, cap: float = 3.0) -> float:
 
 def sequence_cost(q: np.ndarray, b: Bearings, redraws_per_s: float, cap: float = 3.0) -> float:
     """The documented objective under a redraw rate, by brute force over every combination
-    sequence: each bearing its candidate of its combination (its best without one), each
-    transition twice the -log of its chance: p / C to each other one, p = 1 - exp(-rate gap)."""
+    sequence (all C^n of them, as one array): each bearing its candidate of its combination (its
+    best without one), each transition twice the -log of its chance: p / C to each other one,
+    p = 1 - exp(-rate gap)."""
     r2 = residuals2(q, b, cap)
     combos = int(b.jumps.max()) + 1
+    own = np.array(
+        [
+            [r2[k, b.jumps[k] == c][0] if (b.jumps[k] == c).any() else r2[k].min() for c in range(combos)]
+            for k in range(len(b))
+        ]
+    )  # (n, C): each bearing's cost under each combination
+    paths = np.array(list(itertools.product(range(combos), repeat=len(b))))  # (C^n, n)
     p = 1 - np.exp(-redraws_per_s * np.diff(b.times_s))
-    best = math.inf
-    for path in itertools.product(range(combos), repeat=len(b)):
-        cost = 0.0
-        for k, c in enumerate(path):
-            own = np.flatnonzero(b.jumps[k] == c)
-            cost += r2[k, own[0]] if len(own) else r2[k].min()
-            if k:
-                cost += -2 * math.log(p[k - 1] / combos if c != path[k - 1] else 1 - p[k - 1] * (combos - 1) / combos)
-        best = min(best, cost)
-    return best
+    stay, switch = -2 * np.log(1 - p * (combos - 1) / combos), -2 * np.log(p / combos)
+    moved = paths[:, 1:] != paths[:, :-1]
+    costs = own[np.arange(len(b)), paths].sum(axis=1) + np.where(moved, switch, stay).sum(axis=1)
+    return float(costs.min())
 
 
 def test_many_bearings_from_one_place_do_not_make_a_wrong_place_clear():
