@@ -52,6 +52,13 @@ MAD_TO_STD = 1.4826
 """a Gaussian's std over its median absolute deviation"""
 
 
+def residuals_rad(position: np.ndarray, robot: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Each bearing's angle residual (rad) at `position`: the direction from its robot position
+    less its world angle."""
+    d = position[None, :] - robot
+    return wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - angles)
+
+
 def jackknife_covariance(
     position: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, huber_sigma: float
 ) -> np.ndarray | None:
@@ -64,9 +71,7 @@ def jackknife_covariance(
     count = int(block.max()) + 1 if len(block) else 0
     if count < MIN_CELLS:
         return None
-    d = position[None, :] - robot
-    r = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - angles) / stds
-    weight = huber_weight(r, huber_sigma) / stds**2
+    weight = huber_weight(residuals_rad(position, robot, angles) / stds, huber_sigma) / stds**2
     keep = weight[None, :] * (block[None, :] != np.arange(count)[:, None])  # (B, n)
     q = np.repeat(position[None, :], count, axis=0)
     for _ in range(ITERATIONS):
@@ -93,8 +98,7 @@ def variance_factor(
     bearings."""
     if len(robot) == 0:
         return 0.0
-    d = position[None, :] - robot
-    r = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - angles) / (stds / aoa_std_scale)
+    r = residuals_rad(position, robot, angles) / (stds / aoa_std_scale)
     return float((MAD_TO_STD * np.median(np.abs(r))) ** 2)
 
 

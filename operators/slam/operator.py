@@ -322,12 +322,16 @@ class Slam(Operator):
             out.chosen = choice
             yield Emit("bearings", out, stamp)
 
+    def _published(self) -> tuple[np.ndarray, np.ndarray]:
+        """The tags' covariances as published and whether each is localized: the window's scaled up by
+        the integrity check (integrity.TagIntegrity); the window itself goes on with its own."""
+        w = self.window
+        covariance = w.integrity.scaled(w.tag_covariance)
+        return covariance, largest_std_m(covariance) <= w.settings.observable_std_m
+
     def _tags(self, stamp: int) -> Any:
         w = self.window
-        # published: the window's covariances scaled up to cover how much each tag's estimate depends on
-        # where it was seen from (integrity.TagIntegrity); the window itself goes on with its own
-        covariance = w.integrity.scaled(w.tag_covariance)
-        observable = largest_std_m(covariance) <= w.settings.observable_std_m
+        covariance, observable = self._published()
         tags = []
         for i, (tag_id, (x, y)) in enumerate(zip(w.tag_ids, w.tag_positions(), strict=True)):
             cov = np.nan_to_num(covariance[i], nan=1e12, posinf=1e12)
@@ -395,12 +399,11 @@ class Slam(Operator):
             log.warning(
                 "slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)", self.unchained
             )
-        published = w.integrity.scaled(w.tag_covariance)
+        published, localized = self._published()
         for slot, tag_id in enumerate(w.tag_ids):
             combination = w.locked(slot)
             if combination is not None:
                 log.info("slam: tag %d's chains held jump combination %d all run", tag_id, combination)
-            std_m = float(largest_std_m(published[slot : slot + 1])[0])
             if not w.active[slot]:
                 heard, needed = w.finder.heard.get(slot, 0), w.finder.search.min_bearings
                 why = (
@@ -409,17 +412,14 @@ class Slam(Operator):
                     else f"{heard} of its bearings heard, {needed} needed before the search"
                 )
                 log.warning("slam: tag %d not localized: %s", tag_id, why)
-            elif w.active[slot] and std_m > w.settings.observable_std_m:
-                jackknife = w.integrity.scale.get(slot, 1.0)
+            elif not localized[slot]:
+                scale = w.integrity.scale.get(slot, 1.0)
                 log.warning(
                     "slam: tag %d not localized at the end: its position's largest std is %.2f m (%.2f m at most)%s",
                     tag_id,
-                    std_m,
+                    float(largest_std_m(published[slot : slot + 1])[0]),
                     w.settings.observable_std_m,
-                    f", the window's scaled by {math.sqrt(jackknife):.1f} for how much the estimate depends on "
-                    "where the tag was seen from"
-                    if jackknife > 1
-                    else "",
+                    f", the window's scaled by {math.sqrt(scale):.1f} by the integrity check" if scale > 1 else "",
                 )
         if self.failures:
             log.warning(
