@@ -96,3 +96,10 @@ def smallest_arc(angles: np.ndarray) -> float:
     a = np.sort(np.mod(angles, 2 * math.pi))
     gaps = np.diff(np.concatenate([a, [a[0] + 2 * math.pi]]))
     return float(2 * math.pi - gaps.max())
+
+
+def parallax_deg(position: np.ndarray, seen_from: np.ndarray) -> float:
+    """Spread (deg) of the directions from which `position` (2,) was seen from `seen_from` (n, 2);
+    0 without any."""
+    seen = position[None, :] - seen_from
+    return math.degrees(smallest_arc(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0

@@ -68,7 +68,8 @@ def feed(op: Slam, sc, measured, with_aoa: bool = True):
 
 
 def test_outputs_per_epoch_and_tags_localized():
-    sc = scene(seconds=8.0)
+    """10 s: in 8 the first tag is seen over 8 deg, short of a verdict's parallax."""
+    sc = scene(seconds=10.0)
     out = feed(Slam(SlamParams(window=20, aoa_std_scale=1.0)), sc, angles(sc))  # exact bearings, nothing shared
     by_port: dict[str, list[Any]] = {}
     for e in out:
@@ -91,6 +92,20 @@ def test_outputs_per_epoch_and_tags_localized():
     assert len(timing) == len(by_port["diagnostics"]) and all(t.stage == "slam.update" and t.wall_s > 0 for t in timing)
     path = by_port["path"][-1].msg
     assert len(path.poses) == n
+
+
+def test_a_tag_seen_over_too_little_parallax_is_not_published_localized(caplog):
+    """8 s of the scene see the first tag over 8 deg: its window covariance is small (exact
+    bearings) but it has no verdict, so it is published unlocalized, and the run's end says why."""
+    sc = scene(seconds=8.0)
+    op = Slam(SlamParams(window=20, aoa_std_scale=1.0))
+    with caplog.at_level(logging.WARNING):
+        out = feed(op, sc, angles(sc))
+    first = next(t for t in [e for e in out if e.port == "tags"][-1].msg.tags if t.id == 1)
+    assert math.hypot(first.position.x - sc.tags[0][0], first.position.y - sc.tags[0][1]) < 0.01
+    assert math.sqrt(max(np.linalg.eigvalsh(op.window.tag_covariance[0]))) < 0.5
+    assert not first.observable
+    assert "slam: tag 1 not localized at the end: its bearings span 8 deg seen from it (10 needed)" in caplog.text
 
 
 def test_imu_only_and_stationary_runs_do_not_crash(caplog):

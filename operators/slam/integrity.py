@@ -25,16 +25,26 @@ Nor can it see bearings that scatter more than their bursts say all over (an NLO
 image blends into every burst): so the published covariance is also at least the window's times
 the variance factor, the square of the robust spread of the residuals in the bursts' own stds,
 when that is above 1 (`paper` seed 2: the NLOS tag 3% of its estimates beyond 3 sigma -> 0%).
+
+And a tag is published as localized only once it has a verdict (`TagIntegrity.verdict`):
+MIN_VERDICT_BEARINGS of its bearings left the window and were judged, they span MIN_PARALLAX_DEG
+seen from the estimate, and the estimate explains them (at most half beyond 3 of their stds:
+MAX_VARIANCE_FACTOR). Before that its covariance is the window's alone, and a window fed bearings
+with persistent errors from a short baseline converges to a crossing near the robot, where a small
+covariance is easy (a real building's bearings replayed: declared localized 7-16 s after first
+heard, 6-11 m off, stds of 0.05-0.2 m, the bearings' median residual 60 deg there against 6 at the
+true place).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2, f
 
-from rover.geometry import wrap_angle
+from rover.geometry import parallax_deg, wrap_angle
 from rover.operators.slam.factors import huber_weight
 
 CELL_M = 1.0
@@ -45,11 +55,19 @@ EVERY_BEARINGS = 20
 """new bearings of a tag between two jackknife estimates"""
 ITERATIONS = 4
 """Gauss-Newton steps of each leave-one-cell-out estimate, from the tag's estimate"""
-HISTORY_BEARINGS = 4000
-"""bearings kept per tag (the latest)"""
 THREE_SIGMA = 3.0
 MAD_TO_STD = 1.4826
 """a Gaussian's std over its median absolute deviation"""
+MIN_VERDICT_BEARINGS = 12
+"""bearings of a tag that left the window before its first verdict (the search's `min_bearings`)"""
+MAX_VARIANCE_FACTOR = (MAD_TO_STD * THREE_SIGMA) ** 2
+"""a variance factor above this (about 20) means half the tag's bearings are beyond 3 of their
+stds from its estimate: the place does not explain them, however small its covariance"""
+MIN_PARALLAX_DEG = 10.0
+"""spread of the directions of a tag's judged bearings seen from its estimate that a verdict needs
+(the search's `min_parallax_deg`)"""
+HISTORY_BEARINGS = 4000
+"""bearings kept per tag (the latest)"""
 
 
 def residuals_rad(position: np.ndarray, robot: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -144,7 +162,8 @@ def inflation(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
 @dataclass
 class TagIntegrity:
     """Per tag slot: the bearings that left the window (robot position, world angle, the window's
-    std) since it was localized, its latest jackknife covariance, and the scale it sets."""
+    std) since it was localized, its latest jackknife covariance, variance factor and parallax, and
+    the scale they set."""
 
     seen: dict[int, list[tuple[float, float, float, float]]] = field(default_factory=dict)
     jackknife: dict[int, np.ndarray | None] = field(default_factory=dict)
@@ -152,6 +171,10 @@ class TagIntegrity:
     """per slot: bearings to come before its next jackknife"""
     factor: dict[int, float] = field(default_factory=dict)
     """per slot: its bearings' latest variance factor"""
+    judged_xy: dict[int, np.ndarray] = field(default_factory=dict)
+    """per slot: the robot positions (n, 2) of the bearings its latest verdict judged"""
+    parallax: dict[int, float] = field(default_factory=dict)
+    """per slot: the spread (deg) of its judged bearings' directions seen from its estimate"""
     scale: dict[int, float] = field(default_factory=dict)
     """per slot: the factor its window covariance is published with (`judge`)"""
 
@@ -167,22 +190,48 @@ class TagIntegrity:
         kept = self.seen.setdefault(tag_slot, [])
         kept.append((float(robot_xy[0]), float(robot_xy[1]), float(angle), float(std)))
         del kept[:-HISTORY_BEARINGS]
-        self.due[tag_slot] = self.due.get(tag_slot, EVERY_BEARINGS) - 1
+        self.due[tag_slot] = self.due.get(tag_slot, MIN_VERDICT_BEARINGS) - 1
 
     def judge(
-        self, tag_slot: int, position: np.ndarray, covariance: np.ndarray, huber_sigma: float, aoa_std_scale: float
+        self,
+        tag_slot: int,
+        position: np.ndarray,
+        covariance: np.ndarray,
+        window_xy: np.ndarray,
+        huber_sigma: float,
+        aoa_std_scale: float,
     ) -> None:
         """Set `scale[tag_slot]`, how much the tag's window covariance is scaled up to be published:
         enough to cover the jackknife, and the variance factor of its bearings when above 1 (both
-        re-estimated every EVERY_BEARINGS bearings, with the window's Huber threshold and scale)."""
+        re-estimated every EVERY_BEARINGS bearings, with the window's Huber threshold and scale,
+        once MIN_VERDICT_BEARINGS left the window); and the parallax of its bearings, those that
+        left and those still in the window (taken from `window_xy`, (m, 2))."""
         if self.due.get(tag_slot, 1) <= 0:
             rows = np.array(self.seen.get(tag_slot, [])).reshape(-1, 4)
-            robot, angles, stds = rows[:, :2], rows[:, 2], rows[:, 3]
-            self.jackknife[tag_slot] = jackknife_covariance(position, robot, angles, stds, huber_sigma)
-            self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
-            self.due[tag_slot] = EVERY_BEARINGS
+            if len(rows) < MIN_VERDICT_BEARINGS:
+                self.due[tag_slot] = MIN_VERDICT_BEARINGS - len(rows)
+            else:
+                robot, angles, stds = rows[:, :2], rows[:, 2], rows[:, 3]
+                self.jackknife[tag_slot] = jackknife_covariance(position, robot, angles, stds, huber_sigma)
+                self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
+                self.judged_xy[tag_slot] = robot
+                self.due[tag_slot] = EVERY_BEARINGS
+        if tag_slot in self.judged_xy:
+            self.parallax[tag_slot] = parallax_deg(position, np.concatenate([self.judged_xy[tag_slot], window_xy]))
         k = inflation(covariance, self.jackknife.get(tag_slot))
         self.scale[tag_slot] = max(k, self.factor.get(tag_slot, 0.0))
+
+    def verdict(self, tag_slot: int) -> str | None:
+        """Why the tag may not be published as localized whatever its covariance (None: it may)."""
+        if tag_slot not in self.parallax:
+            left = len(self.seen.get(tag_slot, []))
+            return f"{left} of its bearings left the window, {MIN_VERDICT_BEARINGS} needed to judge it"
+        if self.parallax[tag_slot] < MIN_PARALLAX_DEG:
+            return f"its bearings span {self.parallax[tag_slot]:.0f} deg seen from it ({MIN_PARALLAX_DEG:.0f} needed)"
+        if self.factor[tag_slot] > MAX_VARIANCE_FACTOR:
+            spread = math.sqrt(self.factor[tag_slot])
+            return f"its bearings scatter about it {spread:.1f} times their stds: its place does not explain them"
+        return None
 
     def scaled(self, covariances: np.ndarray) -> np.ndarray:
         """The tags' covariances (tags, 2, 2) as published: each scaled by its `scale`."""

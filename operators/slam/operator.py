@@ -324,10 +324,12 @@ class Slam(Operator):
 
     def _published(self) -> tuple[np.ndarray, np.ndarray]:
         """The tags' covariances as published and whether each is localized: the window's scaled up by
-        the integrity check (integrity.TagIntegrity); the window itself goes on with its own."""
+        the integrity check (integrity.TagIntegrity), localized once it has a verdict and its largest
+        std is within `observable_std_m`; the window itself goes on with its own."""
         w = self.window
         covariance = w.integrity.scaled(w.tag_covariance)
-        return covariance, largest_std_m(covariance) <= w.settings.observable_std_m
+        judged = np.array([w.integrity.verdict(t) is None for t in range(len(covariance))], bool)
+        return covariance, judged & (largest_std_m(covariance) <= w.settings.observable_std_m)
 
     def _tags(self, stamp: int) -> Any:
         w = self.window
@@ -412,6 +414,8 @@ class Slam(Operator):
                     else f"{heard} of its bearings heard, {needed} needed before the search"
                 )
                 log.warning("slam: tag %d not localized: %s", tag_id, why)
+            elif (lacking := w.integrity.verdict(slot)) is not None:
+                log.warning("slam: tag %d not localized at the end: %s", tag_id, lacking)
             elif not localized[slot]:
                 scale = w.integrity.scale.get(slot, 1.0)
                 log.warning(

@@ -556,9 +556,11 @@ class SlidingWindow:
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
         info = window_information(self.shape, self._prior.info, self.edges, self.epochs, epoch, coeff)
         self.tag_covariance, self.bias_covariance = covariances(info, self.shape)
+        xy = positions(self.x, len(self.epochs))
         for t, cov in enumerate(self.tag_covariance):
             if self.active[t]:
-                self.integrity.judge(t, self.x[self.shape.tag(t)], cov, s.huber_sigma, s.aoa_std_scale)
+                seen_from = xy[epoch[filled & (tag == t)]]
+                self.integrity.judge(t, self.x[self.shape.tag(t)], cov, seen_from, s.huber_sigma, s.aoa_std_scale)
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`); worked

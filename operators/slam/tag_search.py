@@ -20,7 +20,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from rover.geometry import smallest_arc, wrap_angle
+from rover.geometry import parallax_deg, wrap_angle
 from rover.operators.slam.search_scores import (
     FREE,
     Bearings,
@@ -246,16 +246,10 @@ def _on_all(found: Found, b: Bearings, s: SearchSettings) -> Found:
         choice=choice,
         info=info,
         inliers=float(np.mean(inlier)),
-        parallax_deg=_parallax_deg(position, b.robot[inlier]),
+        parallax_deg=parallax_deg(position, b.robot[inlier]),
         score=float(model_costs(position[None], b, s.cap_sigma).min()),
         combination=_held(choice, b.jumps, found.redraw_rate),
     )
-
-
-def _parallax_deg(position: np.ndarray, seen_from: np.ndarray) -> float:
-    """Spread of the directions from which a position was seen (deg)."""
-    seen = position[None, :] - seen_from
-    return math.degrees(smallest_arc(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0
 
 
 def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found | None]:
@@ -279,7 +273,7 @@ def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found
         centre = b.robot[inlier].mean(axis=0)
         moved = centre + np.outer(RANGE_CHECK, position - centre)
         margin = min(margin, float(model_costs(moved, b, s.cap_sigma).min() - best))
-    parallax = _parallax_deg(position, b.robot[inlier])
+    parallax = parallax_deg(position, b.robot[inlier])
     held = _held(choice, b.jumps, rate)
     return Found(position, choice, info, margin, float(np.mean(inlier)), parallax, best, held, rate)
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from rover.errors import BadInput
-from rover.geometry import smallest_arc, wrap_angle, yaw_from_quaternion
+from rover.geometry import parallax_deg, wrap_angle, yaw_from_quaternion
 
 
 @dataclass(frozen=True)
@@ -262,8 +262,7 @@ def parallax_at_localization_deg(run: RunRecord, tag_id: int) -> float | None:
         return None
     t = run.final.stamp_ns.astype(np.float64)
     robot = np.stack([np.interp(seen, t, run.final.xy[:, 0]), np.interp(seen, t, run.final.xy[:, 1])], axis=1)
-    d = robot - xy[first][None, :]
-    return math.degrees(smallest_arc(np.arctan2(d[:, 1], d[:, 0])))
+    return parallax_deg(xy[first], robot)
 
 
 def published_honesty(run: RunRecord, truth: Truth, start: Rigid2D) -> dict[str, dict[str, Any]]:
