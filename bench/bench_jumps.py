@@ -45,7 +45,20 @@ def run(scenario: str, seed: int, regime: str, work: Path) -> dict[str, Any]:
     )
     out = work / f"run-{scenario}-{seed}-{regime}"
     subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out)], check=True)
-    m = json.loads((out / "metrics.json").read_text())
+    figures = figures_of(json.loads((out / "metrics.json").read_text()))
+    if regime == "none":  # the robot from its odometry alone: the same motion and IMU in every regime
+        alone = work / f"odometry-{scenario}-{seed}"
+        subprocess.run(
+            [*ROVER, "run", "--dataset", str(dataset), "--output", str(alone), "--set", "slam.bearings=false"],
+            check=True,
+        )
+        odometry = json.loads((alone / "metrics.json").read_text())
+        figures["robot_odometry_alone_m"] = odometry["robot"]["trajectory.tum"]["unaligned"]["mean_m"]
+    return figures
+
+
+def figures_of(m: dict[str, Any]) -> dict[str, Any]:
+    """A run's figures from its metrics.json."""
     tags = m.get("tags", {})
     published = m.get("published", {})
     after = [t["localized_after_s"] for t in tags.values() if isinstance(t, dict) and t.get("localized")]
@@ -91,9 +104,13 @@ def main() -> None:
             for seed in seeds:
                 for regime in args.regimes:
                     figures[f"{SCENARIOS[scenario]}{seed}_{regime}"] = run(scenario, seed, regime, Path(tmp))
+    for key, f in figures.items():
+        alone = figures.get(key.split("_")[0] + "_none", {}).get("robot_odometry_alone_m")
+        if alone:
+            f["robot_over_odometry_alone"] = f["robot_mean_m"] / alone
     print(
-        f"{'run':<14}{'robot cm':>10}{'LOS tags cm':>13}{'NLOS tag cm':>13}  localized  AoA LOS/NLOS deg"
-        "  >3 sigma LOS/NLOS  s to localize  deg seen over  ratio to none"
+        f"{'run':<14}{'robot cm':>10}{'/odometry':>10}{'LOS tags cm':>13}{'NLOS tag cm':>13}"
+        "  localized  AoA LOS/NLOS deg  >3 sigma LOS/NLOS  s to localize  deg seen over  ratio to none"
     )
     for key, f in figures.items():
         seed, regime = key.split("_")
@@ -105,9 +122,10 @@ def main() -> None:
         aoa = f"{f['aoa_los_median_deg'] or float('nan'):.1f}/{f['aoa_nlos_median_deg'] or float('nan'):.1f}"
         after = ",".join(f"{v:.0f}" for _, v in sorted(f["localized_after_s"].items()) if v is not None) or "-"
         seen = ",".join(f"{v:.0f}" for _, v in sorted(f["parallax_at_localization_deg"].items()) if v is not None)
+        odometry = f"{f['robot_over_odometry_alone']:.2f}x" if "robot_over_odometry_alone" in f else "-"
         beyond = "/".join("-" if v is None else f"{v:.0%}" for v in (f["los_beyond_3_sigma"], f["nlos_beyond_3_sigma"]))
         print(
-            f"{key:<14}{cm(f['robot_mean_m']):>10}{cm(f['los_tags_mean_m']):>13}{cm(f['nlos_tag_m']):>13}"
+            f"{key:<14}{cm(f['robot_mean_m']):>10}{odometry:>10}{cm(f['los_tags_mean_m']):>13}{cm(f['nlos_tag_m']):>13}"
             f"  {','.join(map(str, f['localized'])):<9}  {aoa:<16}  {beyond:<17}  {after:<14} {seen or '-':<14} "
             f"{ratio if regime != 'none' else ''}"
         )

@@ -13,6 +13,7 @@ from scipy.optimize import least_squares
 from rover.geometry import parallax_deg
 from rover.operators.slam.integrity import (
     CELL_M,
+    CELLS_M,
     MIN_CELLS,
     TagIntegrity,
     disagreeing,
@@ -119,6 +120,30 @@ def test_errors_shared_within_a_place_are_covered_once_inflated():
         inflated.append(math.sqrt(error @ np.linalg.solve(k * cov, error)))
     assert np.mean(np.array(naive) > 3) > 0.3
     assert np.mean(np.array(inflated) > 3) <= 0.02
+
+
+def test_errors_shared_over_longer_stretches_are_covered_at_the_larger_cells():
+    """The offsets shared by 2 m cells of the path (a scatterer's bend lasting longer at walking
+    speed): the 1 m jackknife sees half of them move together with their neighbour and leaves more
+    than a Gaussian's share beyond 3 sigma; scaled to cover the jackknives at every size in
+    CELLS_M, about a 2-D Gaussian's 1.1% again."""
+    robot = rectangle()
+    stds = np.full(len(robot), math.radians(2.0))
+    cells = np.unique(np.floor(robot / 2.0).astype(int), axis=0, return_inverse=True)[1].ravel()
+    small, every = [], []
+    for seed in range(200):
+        rng = np.random.default_rng(seed)
+        offset = rng.normal(0.0, math.radians(3.0), cells.max() + 1)[cells]
+        angles = bearings(robot, TAG, offset + rng.normal(0.0, math.radians(1.0), len(robot)))
+        estimate = fit(robot, angles, stds, TAG)
+        cov = naive_covariance(estimate, robot, stds)
+        error = estimate - TAG
+        k = [inflation(cov, jackknife_covariance(estimate, robot, angles, stds, HUBER, cell)) for cell in CELLS_M]
+        small.append(math.sqrt(error @ np.linalg.solve(k[0] * cov, error)))
+        every.append(math.sqrt(error @ np.linalg.solve(max(k) * cov, error)))
+    assert CELLS_M[0] == CELL_M == 1.0
+    assert np.mean(np.array(small) > 3) > 0.03
+    assert np.mean(np.array(every) > 3) <= 0.02
 
 
 def test_the_small_sample_factor_is_hotellings():

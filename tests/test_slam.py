@@ -118,6 +118,23 @@ def test_imu_only_and_stationary_runs_do_not_crash(caplog):
     assert not any(t.observable for t in [e for e in still if e.port == "tags"][-1].msg.tags)
 
 
+def test_without_bearings_the_robot_is_its_odometry_alone():
+    """`bearings: false` (the baseline of what the bearings add): the same poses as a run given no
+    AoA at all, and no tag; with them the estimate differs."""
+    sc = scene(seconds=4.0)
+    measured = angles(sc, noise_deg=1.0)
+
+    def poses(out):
+        return [(p.msg.pose.position.x, p.msg.pose.position.y) for p in out if p.port == "trajectory"]
+
+    off = feed(Slam(SlamParams(window=10, bearings=False)), sc, measured)
+    alone = feed(Slam(SlamParams(window=10)), sc, measured, with_aoa=False)
+    fused = feed(Slam(SlamParams(window=10)), sc, measured)
+    assert poses(off) == poses(alone) and len(poses(off)) == len(sc.t)
+    assert not any(e.msg.tags for e in off if e.port == "tags")
+    assert poses(fused) != poses(off)
+
+
 def test_no_odometry_at_all_and_bad_angles_are_counted(caplog):
     op = Slam()
     bad = make("rover_msgs/msg/Aoa", header=header(START_NS), tag_id=1, angle_rad=float("nan"), std_rad=0.1)

@@ -8,7 +8,7 @@ window weighs them as independent (their burst stds scaled by `aoa_std_scale`), 
 clutter is heavy its covariance can be several times too small: `paper` seed 2 in a cluttered room
 (scatterers then allowed on the robot's path) published a tag 40 cm off at 6 sigma of a 7 cm std.
 
-So the bearings of a localized tag that left the window are grouped by the cell (CELL_M) the robot
+So the bearings of a localized tag that left the window are grouped by the cell the robot
 took them from, the tag is re-estimated leaving out each cell in turn (robust least squares on the
 bearings, the robot positions as final), and the spread of those estimates is the jackknife
 covariance J = (B - 1) / B sum_b (x_-b - mean)(x_-b - mean)^T: how much the estimate depends on
@@ -18,8 +18,12 @@ where c makes up for the jackknife's own uncertainty with B cells: J is then an 
 degrees of freedom, so an error measured in it follows Hotelling's T^2, not chi^2, and
 c = 2 (B - 1) / (B - 2) F^-1(p; 2, B - 2) / chi2^-1(p; 2) at p = 98.9% (3 sigma in two dimensions)
 keeps errors beyond 3 sigma of the published covariance at a 2-D Gaussian's 1.1% (1.4 at 20 cells,
-2.7 at 8). It cannot see a bias every view shares (a scatterer beside the tag shifts it alike from
-everywhere).
+2.7 at 8). How far the errors' correlation reaches depends on the room, so this is done with cells
+of each size in CELLS_M and the largest k is kept: a bend shared over 2 m of path leaves 15% of
+the estimates beyond 3 sigma of the 1 m jackknife's scaling, none of both's
+(tests/test_integrity.py); a 30-scatterer room (`paper` seed 2, shadowing 8 dB) 45% of the LOS
+estimates -> 23%, and `clutter` seed 2's NLOS tag 99% -> 53%. It cannot see a bias every view
+shares (a scatterer beside the tag shifts it alike from everywhere).
 
 Nor can it see bearings that scatter more than their bursts say all over (an NLOS tag: the wall's
 image blends into every burst): so the published covariance is also at least the window's times
@@ -48,7 +52,9 @@ from rover.geometry import parallax_deg, wrap_angle
 from rover.operators.slam.factors import huber_weight
 
 CELL_M = 1.0
-"""side of the square cells of robot positions that group a tag's bearings"""
+"""side of the smallest square cells of robot positions that group a tag's bearings"""
+CELLS_M = (CELL_M, 2.0)
+"""the cell sizes of the jackknives whose largest scaling is kept"""
 MIN_CELLS = 5
 """cells a tag's bearings must span before the jackknife speaks (fewer: the window's covariance)"""
 EVERY_BEARINGS = 20
@@ -78,12 +84,18 @@ def residuals_rad(position: np.ndarray, robot: np.ndarray, angles: np.ndarray) -
 
 
 def jackknife_covariance(
-    position: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, huber_sigma: float
+    position: np.ndarray,
+    robot: np.ndarray,
+    angles: np.ndarray,
+    stds: np.ndarray,
+    huber_sigma: float,
+    cell_m: float = CELL_M,
 ) -> np.ndarray | None:
-    """The block jackknife covariance (2, 2) of a tag at `position` from its bearings, scaled by
-    small_sample_factor: robot positions (n, 2), world angles (n,) and stds (n,); None while they
-    span fewer than MIN_CELLS cells. Each bearing keeps the Huber weight it has at `position`."""
-    cells = np.floor(robot / CELL_M).astype(np.int64)
+    """The block jackknife covariance (2, 2) of a tag at `position` from its bearings grouped by
+    square cells of side `cell_m`, scaled by small_sample_factor: robot positions (n, 2), world
+    angles (n,) and stds (n,); None while they span fewer than MIN_CELLS cells. Each bearing keeps
+    the Huber weight it has at `position`."""
+    cells = np.floor(robot / cell_m).astype(np.int64)
     _, block = np.unique(cells, axis=0, return_inverse=True)
     block = block.ravel()
     count = int(block.max()) + 1 if len(block) else 0
@@ -162,11 +174,12 @@ def inflation(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
 @dataclass
 class TagIntegrity:
     """Per tag slot: the bearings that left the window (robot position, world angle, the window's
-    std) since it was localized, its latest jackknife covariance, variance factor and parallax, and
+    std) since it was localized, its latest jackknife covariances, variance factor and parallax, and
     the scale they set."""
 
     seen: dict[int, list[tuple[float, float, float, float]]] = field(default_factory=dict)
-    jackknife: dict[int, np.ndarray | None] = field(default_factory=dict)
+    jackknife: dict[int, list[np.ndarray | None]] = field(default_factory=dict)
+    """per slot: its latest jackknife covariance at each size of CELLS_M"""
     due: dict[int, int] = field(default_factory=dict)
     """per slot: bearings to come before its next jackknife"""
     factor: dict[int, float] = field(default_factory=dict)
@@ -202,7 +215,7 @@ class TagIntegrity:
         aoa_std_scale: float,
     ) -> None:
         """Set `scale[tag_slot]`, how much the tag's window covariance is scaled up to be published:
-        enough to cover the jackknife, and the variance factor of its bearings when above 1 (both
+        enough to cover the jackknives, and the variance factor of its bearings when above 1 (both
         re-estimated every EVERY_BEARINGS bearings, with the window's Huber threshold and scale,
         once MIN_VERDICT_BEARINGS left the window); and the parallax of its bearings, those that
         left and those still in the window (taken from `window_xy`, (m, 2))."""
@@ -212,13 +225,15 @@ class TagIntegrity:
                 self.due[tag_slot] = MIN_VERDICT_BEARINGS - len(rows)
             else:
                 robot, angles, stds = rows[:, :2], rows[:, 2], rows[:, 3]
-                self.jackknife[tag_slot] = jackknife_covariance(position, robot, angles, stds, huber_sigma)
+                self.jackknife[tag_slot] = [
+                    jackknife_covariance(position, robot, angles, stds, huber_sigma, cell_m) for cell_m in CELLS_M
+                ]
                 self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
                 self.judged_xy[tag_slot] = robot
                 self.due[tag_slot] = EVERY_BEARINGS
         if tag_slot in self.judged_xy:
             self.parallax[tag_slot] = parallax_deg(position, np.concatenate([self.judged_xy[tag_slot], window_xy]))
-        k = inflation(covariance, self.jackknife.get(tag_slot))
+        k = max((inflation(covariance, j) for j in self.jackknife.get(tag_slot, [])), default=1.0)
         self.scale[tag_slot] = max(k, self.factor.get(tag_slot, 0.0))
 
     def verdict(self, tag_slot: int) -> str | None:

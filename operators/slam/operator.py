@@ -54,6 +54,9 @@ class SlamParams(WindowSettings):
     path: its serialization grows with the run (53 ms at 3000 poses, measured)"""
     wheel: bool = True
     """fuse the wheel odometry when the input is wired and carries data"""
+    bearings: bool = True
+    """fuse the tags' AoAs (false: the robot from its odometry alone, the AoAs still setting the
+    epochs: what the bearings add, measured)"""
     wheel_max_age_s: PositiveFloat = 0.2
     """a wheel speed older than this at an epoch is not used"""
 
@@ -178,7 +181,9 @@ class Slam(Operator):
             self.drop("AoAs with a non-finite angle or std")
             return
         self.channels[msg.tag_id] = msg.channel
-        self.pending.setdefault(stamp, []).append(msg)
+        self.pending.setdefault(stamp, [])
+        if self.params.bearings:
+            self.pending[stamp].append(msg)
 
     def _take(self, stamp: int) -> dict[str, Any]:
         """The AoAs at this epoch as add_epoch's arguments; older ones that never became an epoch are
