@@ -34,8 +34,10 @@ netns-tools:
 		{ apt-get update -q >/dev/null 2>&1 && apt-get install -y -q nftables >/dev/null 2>&1; } || \
 		echo "make: could not install nftables; tests/test_hosts.py will say what is missing"
 
+# The suite on both cores, then the multi-host tests one at a time (each runs several processes).
 test: lint netns-tools
-	$(BIN)/python -m pytest -q --durations=15
+	$(BIN)/python -m pytest -q -n 2 -m "not netns" --durations=15
+	$(BIN)/python -m pytest -q -m netns --durations=5
 
 # The unit and contract tests only, on both cores: what to run while iterating (docs/contributing.md).
 test-fast: $(STAMP)
