@@ -3,9 +3,12 @@ their calibration (`none`), are off it by a random multiple of pi per channel fo
 (`once`, the scenario's default), draw a new multiple at every retune (`retune`), or step by pi at
 random moments and stay so, 1 or 3 times a minute (`steps1`, `steps3`), and, with the jump per run,
 in a cluttered room whose bearings have heavy, persistent errors (`clutter`: 10 scatterers, the
-direct path shadowed by 4 dB; docs/datasets.md), same seeds: `paper` seeds 1-6 and `long_hall`
+direct path shadowed by 4 dB; docs/datasets.md), and the same room with one bearing per burst
+(`bearings`: chains on their calibration, `aoa.jumps=false`: what another AoA source, or a replay of
+real bearings, gives the SLAM, no tag search), same seeds: `paper` seeds 1-6 and `long_hall`
 seed 1 (`--seeds 1 2 --hall-seeds` for a quick subset). Per tag: the seconds from its first AoA to
-its first localization and the parallax it had been seen over by then. Goals
+its first localization and the parallax it had been seen over by then; per seed, the robot from
+its odometry alone (`slam.bearings=false`), and each run's robot error over it. Goals
 (bench/goals.yaml): tags as good as without jumps, every tag heard localized within 20 s of its
 first AoA, and no more than 1% of the published localized estimates beyond 3 sigma of their own
 covariance."""
@@ -23,14 +26,20 @@ from typing import Any
 import numpy as np
 
 ROVER = [sys.executable, "-m", "rover.cli", "-q"]
+CLUTTER = ["--set", "room.scatterers=10", "--set", "room.shadowing_db=4"]
 REGIMES = {
     "none": ["--set", "receiver.jumps_per_run=false"],
     "once": [],
     "retune": ["--set", "receiver.jumps_per_retune=1.0"],
     "steps1": ["--set", "receiver.steps_per_minute=1"],
     "steps3": ["--set", "receiver.steps_per_minute=3"],
-    "clutter": ["--set", "room.scatterers=10", "--set", "room.shadowing_db=4"],
+    "clutter": CLUTTER,
+    "bearings": [*CLUTTER, "--set", "receiver.jumps_per_run=false"],
 }
+"""each regime's `rover simulate` arguments"""
+RUN_ARGS = {"bearings": ["--set", "aoa.jumps=false"]}
+"""a regime's `rover run` arguments: `bearings` gives the SLAM one bearing per burst, as another AoA
+source would (a calibrated card, or an array without jumps), with the cluttered room's heavy errors"""
 
 
 SCENARIOS = {"paper": "seed", "long_hall": "hall"}
@@ -44,7 +53,9 @@ def run(scenario: str, seed: int, regime: str, work: Path) -> dict[str, Any]:
         check=True,
     )
     out = work / f"run-{scenario}-{seed}-{regime}"
-    subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out)], check=True)
+    subprocess.run(
+        [*ROVER, "run", "--dataset", str(dataset), "--output", str(out), *RUN_ARGS.get(regime, [])], check=True
+    )
     figures = figures_of(json.loads((out / "metrics.json").read_text()))
     if regime == "none":  # the robot from its odometry alone: the same motion and IMU in every regime
         alone = work / f"odometry-{scenario}-{seed}"

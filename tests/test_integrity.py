@@ -15,6 +15,8 @@ from rover.operators.slam.integrity import (
     CELL_M,
     CELLS_M,
     MIN_CELLS,
+    MIN_PARALLAX_DEG,
+    MIN_VERDICT_BEARINGS,
     TagIntegrity,
     disagreeing,
     inflation,
@@ -197,49 +199,63 @@ def test_a_tag_is_judged_on_the_bearings_it_has_when_due():
     assert np.all(np.isinf(trust.scaled(cov[None])[0])), "a tag the jackknife cannot pin is published unlocalized"
 
 
-def test_a_tag_is_published_only_once_judged_and_seen_over_enough_parallax():
+def test_a_tag_is_published_only_once_judged_from_enough_places_and_parallax():
     """A tag in use from its first bearing (one candidate each) has no verdict until
-    MIN_VERDICT_BEARINGS left the window; then its parallax counts the window's bearings too."""
-    from rover.operators.slam.integrity import MIN_PARALLAX_DEG, MIN_VERDICT_BEARINGS
-
-    robot, far = rectangle(), np.array([3.0, 12.0])
-    angles = bearings(robot, far, np.zeros(len(robot)))
-    trust = TagIntegrity()
+    MIN_VERDICT_BEARINGS left the window; then its bearings, judged and in the window, must span
+    MIN_PARALLAX_DEG seen from it, and the judged ones come from MIN_CELLS places (before that the
+    jackknife cannot check its covariance)."""
+    robot = rectangle()
+    first = MIN_VERDICT_BEARINGS  # the first 1.2 m of the rectangle: 2 cells
     cov = np.eye(2) * 1e-4
-    for k in range(MIN_VERDICT_BEARINGS):
-        trust.judge(0, far, cov, NOWHERE, HUBER, 1.0)
-        assert trust.verdict(0) == f"{k} of its bearings left the window, {MIN_VERDICT_BEARINGS} needed to judge it"
-        trust.add(0, robot[k], float(angles[k]), 0.03)
-    trust.judge(0, far, cov, NOWHERE, HUBER, 1.0)
-    seen = parallax_deg(far, robot[:MIN_VERDICT_BEARINGS])
-    assert seen < MIN_PARALLAX_DEG, "the first 1.2 m of the rectangle see the tag over a few degrees"
-    assert trust.verdict(0) == f"its bearings span {seen:.0f} deg seen from it ({MIN_PARALLAX_DEG:.0f} needed)"
-    window = robot[MIN_VERDICT_BEARINGS : len(robot) // 2]
-    trust.judge(0, far, cov, window, HUBER, 1.0)
-    assert parallax_deg(far, robot[: len(robot) // 2]) >= MIN_PARALLAX_DEG and trust.verdict(0) is None
+
+    def judged(tag: np.ndarray, gone: int, window: np.ndarray = NOWHERE) -> TagIntegrity:
+        trust = TagIntegrity()
+        for r in robot[:gone]:
+            trust.add(0, r, float(bearings(r[None], tag, np.zeros(1))[0]), 0.03)
+        trust.judge(0, tag, cov, window, HUBER, 1.0)
+        return trust
+
+    far, near = np.array([3.0, 12.0]), np.array([0.6, 0.8])
+    assert judged(far, first - 1).verdict(0) == (
+        f"{first - 1} of its bearings left the window, {MIN_VERDICT_BEARINGS} needed to judge it"
+    )
+    seen = parallax_deg(far, robot[:first])
+    assert seen < MIN_PARALLAX_DEG, "from 1.2 m of path the far tag is seen over a few degrees"
+    assert (
+        judged(far, first).verdict(0)
+        == f"its bearings span {seen:.0f} deg seen from it ({MIN_PARALLAX_DEG:.0f} needed)"
+    )
+    assert parallax_deg(near, robot[:first]) >= MIN_PARALLAX_DEG
+    assert (
+        judged(near, first).verdict(0)
+        == f"its judged bearings were taken from fewer than {MIN_CELLS} places (1 m cells)"
+    )
+    assert judged(far, first, robot[first:60]).verdict(0) is not None, "the window's bearings add parallax, not places"
+    assert judged(far, 60).verdict(0) is None, "6 m of path: 6 places, and 23 deg"
 
 
-def test_a_window_converged_near_the_robot_is_not_published_and_the_true_place_is():
-    """A window fed bearings from 1.5 m of path can converge to a wrong crossing near the robot,
-    where a small covariance is easy (a real building's bearings replayed: 6-11 m off at 0.05-0.2
-    m stds, the bearings' median residual 60 deg there against 6 at the true place). Its verdict
-    says its place does not explain them; the true place, residuals within their stds, is
-    published as localized."""
-    robot = np.stack([np.linspace(0.0, 1.5, 30), np.zeros(30)], axis=1)
-    truth, wrong = np.array([4.0, 5.0]), np.array([0.75, 0.6])
+def test_a_window_converged_near_the_robot_is_not_published_and_the_true_place_may_be():
+    """A window fed bearings with persistent errors from a short stretch of path can converge to a
+    wrong crossing near the robot, where a small covariance is easy (a real building's bearings
+    replayed: 6-11 m off at 0.05-0.2 m stds, the bearings' median residual 60 deg there against 6 at
+    the true place). Its verdict says its place does not explain them, where its covariance alone
+    (taking the bearings as independent) is under 0.1 m; the true place's verdict, residuals within
+    their stds, lets it be published."""
+    robot = np.stack([np.linspace(0.0, 6.0, 60), np.zeros(60)], axis=1)
+    truth, wrong = np.array([4.0, 5.0]), np.array([1.0, 0.6])
     std = math.radians(6.0)
     angles = bearings(robot, truth, np.random.default_rng(5).normal(0.0, std, len(robot)))
-    small = np.eye(2) * 0.05**2
     verdicts = []
     for place in (wrong, truth):
         trust = TagIntegrity()
         for r, a in zip(robot, angles, strict=True):
             trust.add(0, r, float(a), std)
-        trust.judge(0, place, small, NOWHERE, HUBER, 1.0)
+        cov = naive_covariance(place, robot, np.full(len(robot), std))
+        trust.judge(0, place, cov, NOWHERE, HUBER, 1.0)
         verdicts.append(trust.verdict(0))
+    assert math.sqrt(np.linalg.eigvalsh(naive_covariance(wrong, robot, np.full(len(robot), std))).max()) < 0.1
     assert verdicts[0] is not None and "its place does not explain them" in verdicts[0]
     assert verdicts[1] is None
-    assert math.sqrt(np.linalg.eigvalsh(trust.scaled(small[None])[0]).max()) <= 0.5
 
 
 def test_a_tag_whose_bearings_keep_disagreeing_is_re_examined():

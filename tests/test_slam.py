@@ -68,8 +68,9 @@ def feed(op: Slam, sc, measured, with_aoa: bool = True):
 
 
 def test_outputs_per_epoch_and_tags_localized():
-    """10 s: in 8 the first tag is seen over 8 deg, short of a verdict's parallax."""
-    sc = scene(seconds=10.0)
+    """26 s: each tag's bearings that left the window must come from 5 places (1 m cells) for a
+    verdict; in 20 s of the 2 m circle only the first tag's do."""
+    sc = scene(seconds=26.0)
     out = feed(Slam(SlamParams(window=20, aoa_std_scale=1.0)), sc, angles(sc))  # exact bearings, nothing shared
     by_port: dict[str, list[Any]] = {}
     for e in out:
