@@ -133,6 +133,8 @@ def test_without_bearings_the_robot_is_its_odometry_alone():
     fused = feed(Slam(SlamParams(window=10)), sc, measured)
     assert poses(off) == poses(alone) and len(poses(off)) == len(sc.t)
     assert not any(e.msg.tags for e in off if e.port == "tags")
+    sent = [e.msg for e in off if e.port == "bearings"]
+    assert len(sent) == len(sc.t) and all(m.chosen == -1 for m in sent), "every AoA goes out, as not used"
     assert poses(fused) != poses(off)
 
 

@@ -56,7 +56,7 @@ class SlamParams(WindowSettings):
     """fuse the wheel odometry when the input is wired and carries data"""
     bearings: bool = True
     """fuse the tags' AoAs (false: the robot from its odometry alone, the AoAs still setting the
-    epochs: what the bearings add, measured)"""
+    epochs and going out on `bearings` as not used: what the bearings add, measured)"""
     wheel_max_age_s: PositiveFloat = 0.2
     """a wheel speed older than this at an epoch is not used"""
 
@@ -149,6 +149,8 @@ class Slam(Operator):
 
             self.window.program_type = WindowModel
         self.pending: dict[int, list[Any]] = {}
+        self.unused: list[Any] = []
+        """AoAs taken at an epoch but not fused (`bearings` false), to send as not used"""
         self.channels: dict[int, int] = {}
         self.final_poses: list[Any] = []
         """the trajectory's final poses as sent, in order (the path reuses them)"""
@@ -181,9 +183,7 @@ class Slam(Operator):
             self.drop("AoAs with a non-finite angle or std")
             return
         self.channels[msg.tag_id] = msg.channel
-        self.pending.setdefault(stamp, [])
-        if self.params.bearings:
-            self.pending[stamp].append(msg)
+        self.pending.setdefault(stamp, []).append(msg)
 
     def _take(self, stamp: int) -> dict[str, Any]:
         """The AoAs at this epoch as add_epoch's arguments; older ones that never became an epoch are
@@ -192,6 +192,9 @@ class Slam(Operator):
         for s in late:
             self.drop("AoAs without an IMU epoch", len(self.pending.pop(s)))
         msgs = self.pending.pop(stamp, [])
+        if not self.params.bearings:  # not fused: they go out as bearings not used (`chosen` -1)
+            self.unused += msgs
+            msgs = []
         rows = [candidates_of(m) for m in msgs]
         width = max((len(a) for a, _, _ in rows), default=1)
 
@@ -313,6 +316,11 @@ class Slam(Operator):
         for epoch in self.window.left:
             yield from self._bearings(epoch, stamp)
         self.window.left.clear()
+        for msg in self.unused:
+            out = copy.copy(msg)
+            out.chosen = -1
+            yield Emit("bearings", out, stamp)
+        self.unused.clear()
 
     def _bearings(self, epoch: Epoch, stamp: int):
         active = self.window.active
