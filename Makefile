@@ -33,6 +33,10 @@ netns-tools:
 		apt-get install -y -q nftables >/dev/null 2>&1 || \
 		{ apt-get update -q >/dev/null 2>&1 && apt-get install -y -q nftables >/dev/null 2>&1; } || \
 		echo "make: could not install nftables; tests/test_hosts.py will say what is missing"
+	@command -v openssl >/dev/null || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null || \
+		apt-get install -y -q openssl >/dev/null 2>&1 || \
+		{ apt-get update -q >/dev/null 2>&1 && apt-get install -y -q openssl >/dev/null 2>&1; } || \
+		echo "make: could not install openssl; tests/test_certs.py will say what is missing"
 
 # The suite on both cores, then the multi-host tests one at a time (each runs several processes).
 test: lint netns-tools
