@@ -37,7 +37,7 @@ from rover.evaluation.figures import FIGURE_FILES, write_figures
 from rover.evaluation.metrics import Truth, evaluate, poses_of_messages
 from rover.formats.atomic_file import write_aside
 from rover.formats.output_folder import OutputFolder, claim, refuse_input, release
-from rover.formats.run_dir import FAILED_RUN_FILE, RUN_FILE, load_truth, record, tag_entry
+from rover.formats.run_dir import FAILED_RUN_FILE, RUN_FILE, Bearing, Estimates, load_truth, record, tag_entry
 from rover.messages import stamp_ns
 from rover.operator import COMPLETE, In, Operator, RunOutcome
 
@@ -124,8 +124,8 @@ class RunOutputs(Operator):
         self.final: list[Any] = []
         self.live: list[Any] = []
         self.tags: dict[int, _TagRecord] = {}
-        self.history: list[tuple[int, int, float, float, bool, float, float, float, float]] = []
-        self.aoa: list[tuple[int, int, float, float]] = []
+        self.history: Estimates = []
+        self.aoa: list[Bearing] = []
         self.seen: list[tuple[int, int]] = []
         """(stamp, tag id) of every bearing, resolved or not"""
         self.timing: dict[str, list[float]] = {}

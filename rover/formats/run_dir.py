@@ -68,17 +68,21 @@ def _optional_float(row: dict[str, str], column: str, where: str) -> float:
     return csv_float(row, column, where) if row.get(column, "").strip() else math.nan
 
 
-Estimates = list[tuple[int, int, float, float, bool, float, float, float, float]]
+Estimate = tuple[int, int, float, float, bool, float, float, float, float]
+"""one published tag estimate: stamp (ns), tag id, x, y (m), localized, covariance (2x2 row-major)"""
+Bearing = tuple[int, int, float, float]
+"""one AoA: stamp (ns), tag id, angle and std (rad)"""
+Estimates = list[Estimate]
 
 
-def _read_results(path: Path) -> tuple[Estimates, list[tuple[int, int, float, float]], list[tuple[int, int]]]:
+def _read_results(path: Path) -> tuple[Estimates, list[Bearing], list[tuple[int, int]]]:
     """Tag estimates over time, the AoAs, and (stamp, tag id) of every AoA from results.mcap (empty
     when the file is absent): the AoAs as the SLAM used them (`/rover/bearings`, those it resolved)
     when the run recorded them."""
     from rover.formats.bag import BagReader
 
     history: Estimates = []
-    aoa: dict[str, list[tuple[int, int, float, float]]] = {"/rover/aoa": [], "/rover/bearings": []}
+    aoa: dict[str, list[Bearing]] = {"/rover/aoa": [], "/rover/bearings": []}
     seen: list[tuple[int, int]] = []
     resolved_recorded = False
     if not path.exists():
@@ -101,7 +105,7 @@ def _read_results(path: Path) -> tuple[Estimates, list[tuple[int, int, float, fl
     return history, aoa["/rover/aoa"], [(a[0], a[1]) for a in aoa["/rover/aoa"]]
 
 
-def tag_entry(stamp: int, tag: Any) -> tuple[int, int, float, float, bool, float, float, float, float]:
+def tag_entry(stamp: int, tag: Any) -> Estimate:
     """One published tag estimate (a rover_msgs/msg/Tag) as a row of RunRecord.tag_history."""
     c00, c01, c10, c11 = (float(v) for v in tag.covariance_xy)
     return (stamp, int(tag.id), float(tag.position.x), float(tag.position.y), bool(tag.observable), c00, c01, c10, c11)
@@ -111,8 +115,8 @@ def record(
     final: Poses2D,
     live: Poses2D,
     tags: tuple[np.ndarray, np.ndarray, np.ndarray],
-    history: list[tuple[int, int, float, float, bool, float, float, float, float]],
-    aoa: list[tuple[int, int, float, float]],
+    history: Estimates,
+    aoa: list[Bearing],
     heard: dict[int, tuple[int, int]] | None = None,
     seen: list[tuple[int, int]] | None = None,
 ) -> RunRecord:
