@@ -3,12 +3,26 @@
 from __future__ import annotations
 
 import argparse
+import json
+import logging
+import os
+import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
 from rover.cli.args import add_set, default_pipeline, overrides
 from rover.cli.registry import BUILTINS
 from rover.cli.summary import run_summary
+from rover.errors import BadInput
+from rover.pipeline.validation import Pipeline
+
+log = logging.getLogger("rover")
+
+WORKERS_ENV = "ROVER_WORKERS"
+"""The default of --workers when the command line gives none (the tests run in one process)."""
+SOCKET_PATH_MAX = 100
+"""A Unix socket's path must fit in 108 bytes (sun_path)."""
 
 
 def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
@@ -34,22 +48,44 @@ def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
         help="also serve a live view to Foxglove on ws://127.0.0.1:PORT (default 8765; 0: any free port); "
         "--set view.host=0.0.0.0 listens on every interface",
     )
+    p.add_argument(
+        "--workers",
+        metavar="N",
+        help="worker processes for a run of the whole pipeline: a count, or auto (a process per core; "
+        f"the default, or the file's workers:, or ${WORKERS_ENV}); 1 runs everything in this process",
+    )
+    p.add_argument("--worker-plan", help=argparse.SUPPRESS)
+    p.add_argument("--worker-index", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--worker-ready-fd", type=int, help=argparse.SUPPRESS)
     add_set(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from rover.pipeline.validation import load_and_check
-    from rover.runtime import runner
+    from rover.runtime import runner, workers
 
     path = args.pipeline or default_pipeline()
+    if args.worker_plan:
+        return _run_worker(args, load_and_check(path, BUILTINS, overrides(args)))
     if args.view is not None:
         from rover.cli.view import load_with_view
 
         pipeline = load_with_view(path, BUILTINS, overrides(args), args.view, args.host)
     else:
         pipeline = load_and_check(path, BUILTINS, overrides(args))
-    status = runner.run(pipeline, args.host, progress=not args.quiet)
+    requested = _requested_workers(args)
+    if args.host is not None or args.view is not None:
+        if requested not in (None, "auto", 1):
+            why = "--host: a host of a multi-host run" if args.host is not None else "--view: a run with a live view"
+            raise BadInput(f"--workers {requested}: {why} runs in one process")
+        count = 1
+    else:
+        count = workers.worker_count(requested, pipeline)
+    if count > 1:
+        status = _run_in_workers(args, pipeline, count)
+    else:
+        status = runner.run(pipeline, args.host, progress=not args.quiet)
     folders = [
         Path(str(node.spec.params.get("out", "rover-out")))
         for node in pipeline.nodes.values()
@@ -58,3 +94,103 @@ def run(args: argparse.Namespace) -> int:
     for line in (line for out in folders for line in run_summary(out)) if not args.quiet else ():
         print(line)
     return status
+
+
+def _requested_workers(args: argparse.Namespace) -> int | str | None:
+    """--workers, else $ROVER_WORKERS, else None (the file's `workers:`)."""
+    value = args.workers if args.workers is not None else os.environ.get(WORKERS_ENV)
+    where = "--workers" if args.workers is not None else f"${WORKERS_ENV}"
+    if value is None or value == "auto":
+        return value
+    try:
+        count = int(value)
+    except ValueError:
+        raise BadInput(f"{where} {value!r}: a count of worker processes, or auto") from None
+    if count < 1:
+        raise BadInput(f"{where} {value!r}: at least 1 (1 runs everything in this process)")
+    return count
+
+
+def _measured_cpu(pipeline: Pipeline) -> dict[str, float]:
+    """The CPU seconds each operator took in the last complete run into the same output folder
+    (its run.json's profile), where one is there."""
+    from rover.formats.run_dir import RUN_FILE
+
+    for node in pipeline.nodes.values():
+        if node.cls.folder_param is None:
+            continue
+        try:
+            doc = json.loads((Path(str(getattr(node.params, node.cls.folder_param))) / RUN_FILE).read_text())
+            if doc.get("status") == "complete":
+                return {name: float(p["cpu_s"]) for name, p in doc["profile"].items()}
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue  # no earlier run, or one of another kind: the classes' weights place them
+    return {}
+
+
+def _run_in_workers(args: argparse.Namespace, pipeline: Pipeline, count: int) -> int:
+    """The run spread over `count` worker processes (rover.runtime.workers), each a `rover run` of
+    its share with this command line."""
+    from rover.runtime import supervisor, workers
+
+    base = tempfile.gettempdir()
+    base = base if len(base) < SOCKET_PATH_MAX - 40 else "/tmp"
+    with tempfile.TemporaryDirectory(prefix="rover-workers-", dir=base) as folder:
+        hub = f"unixsock-stream/{folder}/hub.sock"
+        plan = workers.plan(pipeline, count, hub, workers.costs(pipeline, _measured_cpu(pipeline)))
+        for k, group in enumerate(plan.groups):
+            log.info("%s runs %s", workers.WorkerPlan.host(k), ", ".join(group))
+        plan_file = Path(folder) / "plan.json"
+        plan_file.write_text(plan.to_json())
+        same = _same_command_line(args)
+
+        def command(k: int, ready_fd: int) -> list[str]:
+            quiet = ["-q"] if args.quiet or k > 0 else []
+            return [
+                sys.executable,
+                "-m",
+                "rover.cli",
+                *quiet,
+                *["-v"] * args.verbose,
+                "run",
+                *same,
+                "--worker-plan",
+                str(plan_file),
+                "--worker-index",
+                str(k),
+                "--worker-ready-fd",
+                str(ready_fd),
+            ]
+
+        return supervisor.supervise(plan, command)
+
+
+def _same_command_line(args: argparse.Namespace) -> list[str]:
+    """This command line's pipeline and settings, for a worker to load the same pipeline."""
+    argv = [str(Path(args.pipeline).resolve())] if args.pipeline else []
+    for flag in ("dataset", "output", "speed", "timing_topic"):
+        if getattr(args, flag) is not None:
+            argv += [f"--{flag.replace('_', '-')}", str(getattr(args, flag))]
+    for item in args.set or []:
+        argv += ["--set", item]
+    return argv
+
+
+def _run_worker(args: argparse.Namespace, pipeline: Pipeline) -> int:
+    """One worker's share of a run that `rover run` spread over worker processes."""
+    from rover.runtime import runner, supervisor, workers
+
+    plan_file = Path(args.worker_plan)
+    try:
+        text = plan_file.read_text()
+    except OSError as exc:
+        raise BadInput(f"{plan_file}: cannot read the worker plan: {exc.strerror}") from None
+    plan = workers.WorkerPlan.from_json(text, str(plan_file))
+    fd = args.worker_ready_fd
+
+    def running() -> None:
+        if fd is not None:
+            os.write(fd, supervisor.RUNNING)
+
+    host = workers.WorkerPlan.host(args.worker_index)
+    return runner.run(workers.as_workers(pipeline, plan), host, progress=not args.quiet, on_running=running)

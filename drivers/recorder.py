@@ -31,6 +31,9 @@ class RecorderParams:
 class Recorder(Operator):
     """Records its inputs to `<out>/<file>`."""
 
+    cpu_weight = 0.5
+    folder_param = "out"
+
     variadic = In(ANY, raw=True, doc="any message; recorded as the topic named by `topics` or /<port> (none for '')")
     Params = RecorderParams
 

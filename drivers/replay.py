@@ -41,6 +41,8 @@ class ReplayParams(Checked):
 class DatasetReplay(Source):
     """Replays `/csi`, `/imu/data` and `/odom` of a dataset, and its rig description."""
 
+    cpu_weight = 1.2
+
     outputs = {
         "csi": Out("rover_msgs/msg/CsiFrame", "raw CSI Tool records"),
         "imu": Out("sensor_msgs/msg/Imu", "IMU samples"),

@@ -106,6 +106,9 @@ class RunOutputsParams:
 class RunOutputs(Operator):
     """Writes trajectory.tum, trajectory_live.tum and tags.csv (and metrics with truth) into `out`."""
 
+    cpu_weight = 0.4
+    folder_param = "out"
+
     inputs = {
         "trajectory": In("geometry_msgs/msg/PoseStamped", doc="final poses (slam/trajectory)"),
         "pose": In("geometry_msgs/msg/PoseStamped", doc="live poses (slam/pose)"),

@@ -31,6 +31,8 @@ class CsiDecode(Operator):
     than `BATCH_SPAN_S` of event time, so outputs trail their inputs by at most that much.
     """
 
+    cpu_weight = 0.9
+
     inputs = {"frames": In("rover_msgs/msg/LabelledCsiFrame")}
     outputs = {"csi": Out("rover_msgs/msg/Csi")}
     Params = DecodeParams

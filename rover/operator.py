@@ -201,6 +201,11 @@ class Operator:
     variadic: ClassVar[In | None] = None
     Params: ClassVar[type] = NoParams
     lateness_s: ClassVar[float] = 0.0
+    cpu_weight: ClassVar[float] = 1.0
+    """the CPU seconds this operator takes per minute of a typical dataset (bench/bench_end_to_end.py's
+    profile): how operators are spread over worker processes before a run has measured them"""
+    folder_param: ClassVar[str | None] = None
+    """the param naming a folder this operator writes: operators writing one folder share a process"""
     context: RunContext = RunContext()
     """the run this operator is part of (pipeline file, command-line settings)"""
 

@@ -13,6 +13,9 @@ from pathlib import Path
 # as the `rover` command does (cli/__init__.py): one OpenBLAS thread for the small matrices the
 # operators work on, in this process and the CLI subprocesses it starts; before numpy loads
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# runs in one process unless a test asks for workers (tests/test_workers.py): what the tests patch
+# in this process, and the signals they send, then reach every operator
+os.environ.setdefault("ROVER_WORKERS", "1")
 
 import pytest  # noqa: E402
 from helpers import LAP, popen_rover, run_rover, strip_truth  # noqa: E402

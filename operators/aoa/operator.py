@@ -124,6 +124,8 @@ def align_packets(clean: np.ndarray, undo: np.ndarray, passes: int = 2) -> np.nd
 class Aoa(Operator):
     """One Aoa message per burst of a tag's packets."""
 
+    cpu_weight = 3.7
+
     inputs = {"csi": In("rover_msgs/msg/Csi"), "setup": In("rover_msgs/msg/RigSetup")}
     outputs = {"aoa": Out("rover_msgs/msg/Aoa")}
     Params = AoaParams

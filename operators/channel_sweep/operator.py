@@ -35,6 +35,8 @@ class SweepParams(Checked):
 class ChannelSweep(Operator):
     """Labels CSI frames with the tag owning their channel; sends the sweep schedule once the rig is known."""
 
+    cpu_weight = 0.4
+
     inputs = {
         "frames": In("rover_msgs/msg/CsiFrame"),
         "setup": In("rover_msgs/msg/RigSetup"),

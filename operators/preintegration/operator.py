@@ -101,6 +101,8 @@ class _Increment:
 class Preintegration(Operator):
     """Emits one Preintegration per AoA epoch (AoAs sharing a stamp are one epoch)."""
 
+    cpu_weight = 1.7
+
     inputs = {
         "imu": In("sensor_msgs/msg/Imu"),
         "epochs": In("rover_msgs/msg/Aoa"),

@@ -109,6 +109,8 @@ def edge_of(msg: Any, bias_states: bool) -> Edge:
 class Slam(Operator):
     """Robot and tag positions from AoAs and preintegrated IMU motion."""
 
+    cpu_weight = 8.8
+
     inputs = {
         "aoa": In("rover_msgs/msg/Aoa"),
         "odometry": In("rover_msgs/msg/Preintegration"),

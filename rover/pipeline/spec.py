@@ -26,13 +26,13 @@ ENDPOINT_RE = re.compile(
 PORT_RE = re.compile(r":(\d{1,5})$")
 MAX_PORT = 65535
 
-TOP_KEYS = ("version", "name", "description", "vars", "hosts", "security", "operators")
+TOP_KEYS = ("version", "name", "description", "vars", "workers", "hosts", "security", "operators")
 SECURITY_KEYS = ("ca", "hosts", "monitor")
 IDENTITY_KEYS = ("cert", "key")
 MONITOR = "monitor"
 """The read-only identity of `rover status` (a reserved host name under security:)."""
 HOST_KEYS = ("listen", "connect", "host_timeout_s", "wait_timeout_s", "connect_timeout_s")
-OPERATOR_KEYS = ("uses", "host", "inputs", "params", "description", "inbox")
+OPERATOR_KEYS = ("uses", "host", "process", "inputs", "params", "description", "inbox")
 DEFAULT_INBOX = 1024
 """Data messages per operator inbox (its memory bound: about that many messages of its inputs)."""
 HostTimeout = Annotated[float, P.Range(ge=1.0, le=3600.0)]
@@ -41,6 +41,8 @@ DEFAULT_HOST_TIMEOUT_S = 15.0
 """A host unreachable this long is lost (the run goes on without it: partial results)."""
 DEFAULT_WAIT_TIMEOUT_S = 120.0
 """How long a host waits for the others to start (and retries its connections) before giving up."""
+AUTO_WORKERS = "auto"
+"""`workers: auto`: a worker process per available core."""
 
 
 def endpoint_problem(endpoint: Any) -> str | None:
@@ -104,6 +106,8 @@ class OperatorSpec:
     name: str
     uses: str
     host: str | None = None
+    process: str | None = None
+    """operators with one `process:` name run in one worker process (rover.runtime.workers)"""
     inbox: int = DEFAULT_INBOX
     """data messages the operator's inbox holds before its producers wait (or a live source's oldest go)"""
     inputs: dict[str, Wire] = field(default_factory=dict)
@@ -125,6 +129,8 @@ class PipelineSpec:
     set_vars: dict[str, Any] = field(default_factory=dict)
     """variables given on the command line (`--set NAME=VALUE`, `--dataset`, `--output`, `--speed`)"""
     security: SecuritySpec | None = None
+    workers: int | str = AUTO_WORKERS
+    """worker processes of a run of the whole pipeline: a count, or `auto` (one per core)"""
 
     def command_line(self) -> dict[str, Any]:
         """What the command line changed: `{"vars": {...}, "params": {"OPERATOR.PARAM": value}}`, for run.json."""
@@ -274,6 +280,7 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
         hosts[hname] = host
 
     security = _security(top, hosts, variables, col) if "security" in top else None
+    workers = _workers(_substitute(top.get("workers", AUTO_WORKERS), ("workers",), variables, col), col)
     operators: dict[str, OperatorSpec] = {}
     raw_ops = col.mapping(top.get("operators"), ("operators",), "operators")
     if "operators" not in top:
@@ -293,6 +300,13 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
             col.add(path + ("host",), "host must be a host name")
             host_name = None
         spec = OperatorSpec(oname, uses or "", host_name)
+        process = _substitute(oval.get("process"), path + ("process",), variables, col)
+        if process is not None and not (isinstance(process, str) and NAME_RE.match(process)):
+            col.add(
+                path + ("process",), f"process must name a worker process (letters, digits, _ or -), got {process!r}"
+            )
+        elif process is not None:
+            spec.process = process
         if "inbox" in oval:
             try:
                 spec.inbox = P.coerce(_substitute(oval["inbox"], path + ("inbox",), variables, col), P.PositiveInt)
@@ -319,7 +333,19 @@ def parse(doc: Located, overrides: dict[str, Any] | None = None) -> tuple[Pipeli
                 f"--set {op_name}.{param}: the pipeline has no operator {op_name!r}{did_you_mean(op_name, raw_ops)}",
                 key=True,
             )
-    return PipelineSpec(doc.file, name, variables, hosts, operators, doc, set_vars, security), col.problems
+    pipeline = PipelineSpec(doc.file, name, variables, hosts, operators, doc, set_vars, security, workers)
+    return pipeline, col.problems
+
+
+def _workers(value: Any, col: _Collector) -> int | str:
+    """The `workers:` key: `auto` or a count of at least 1."""
+    if value == AUTO_WORKERS:
+        return AUTO_WORKERS
+    try:
+        return int(P.coerce(value, P.PositiveInt))
+    except P.ParamTypeError as exc:
+        col.add(("workers",), f"workers: {AUTO_WORKERS} (a process per core) or a count of at least 1: {exc}")
+        return AUTO_WORKERS
 
 
 def _identity(value: Any, path: tuple[Any, ...], what: str, col: _Collector) -> Identity | None:

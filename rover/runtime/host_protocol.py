@@ -50,6 +50,8 @@ class HostProtocol:
         self.watch: HostWatch | None = None
         self.state = "waiting"
         self.started = time.monotonic()
+        self.on_running: Callable[[], None] = lambda: None
+        """called once every host has subscribed, as this one starts its tasks"""
 
     def flow_control(self, session: zenoh.Session, live: Callable[[str], bool]) -> None:
         """Credits on every output (not live) with consumers on other hosts; acks on every input fed
@@ -129,6 +131,7 @@ class HostProtocol:
             if not watch.wait_ready(wanted, self.stop, spec.wait_timeout_s, hint if spec.connect else ""):
                 return
             self.state = "running"
+            self.on_running()
             start_and_wait()
             stopped = self.stop.is_set()
             # A host stopped before its input ended is not done: the others report it lost. One whose

@@ -361,9 +361,12 @@ class Runner:
                 time.sleep(POLL_S)
 
 
-def run(pipeline: Pipeline, host: str | None = None, progress: bool = True) -> int:
+def run(
+    pipeline: Pipeline, host: str | None = None, progress: bool = True, on_running: Callable[[], None] | None = None
+) -> int:
     """Run a checked pipeline (all of it, or one host's share); return the exit status. `progress`:
-    show how far it has got on stderr."""
+    show how far it has got on stderr; `on_running`: called once every host has subscribed (a
+    distributed run), as this one starts its operators."""
     if host is not None and pipeline.spec.hosts and host not in pipeline.spec.hosts:
         raise BadInput(
             f"{pipeline.spec.file}: --host {host!r} is not declared under hosts: ({', '.join(pipeline.spec.hosts)})"
@@ -374,4 +377,7 @@ def run(pipeline: Pipeline, host: str | None = None, progress: bool = True) -> i
             log.warning("%s", line)
         if problems:
             raise SpecError(problems)
-    return Runner(pipeline, host, progress).run()
+    runner = Runner(pipeline, host, progress)
+    if on_running is not None:
+        runner.hosts.on_running = on_running
+    return runner.run()

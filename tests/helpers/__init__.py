@@ -5,7 +5,7 @@ reference data, and one way to wait for a condition."""
 from helpers.cli import popen_rover, run_rover, stop_while_writing
 from helpers.data import LAP, T0_NS, read_bag, strip_truth, write_imu_dataset
 from helpers.paths import ROOT, TESTS, free_port, reference_data
-from helpers.wait import wait_for_file, wait_until
+from helpers.wait import wait_for_file, wait_for_line, wait_until
 
 __all__ = [
     "LAP",
@@ -20,6 +20,7 @@ __all__ = [
     "stop_while_writing",
     "strip_truth",
     "wait_for_file",
+    "wait_for_line",
     "wait_until",
     "write_imu_dataset",
 ]

@@ -4,6 +4,8 @@ depends on has ended. Never a bare sleep to synchronize."""
 from __future__ import annotations
 
 import contextlib
+import os
+import select
 import subprocess
 import time
 from collections.abc import Callable, Sequence
@@ -42,3 +44,22 @@ def wait_for_file(path: Path, proc: subprocess.Popen, min_bytes: int = 0, timeou
         return False
 
     wait_until(written, f"{path} of {min_bytes} bytes", procs=[proc], timeout_s=timeout_s)
+
+
+def wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 120.0) -> str:
+    """Read the process's stderr (a text pipe) until a line holds `text`; return what was read, which
+    its `communicate` no longer returns. Fail when it ends first or time runs out."""
+    assert proc.stderr is not None, "started without stderr=PIPE"
+    fd = proc.stderr.fileno()
+    read = b""
+    deadline = time.monotonic() + timeout_s
+    while text.encode() not in read:
+        left = deadline - time.monotonic()
+        assert left > 0, f"no line with {text!r} after {timeout_s:g} s:\n{read.decode(errors='replace')}"
+        ready, _, _ = select.select([fd], [], [], left)
+        chunk = os.read(fd, 65536) if ready else b""
+        if ready and not chunk:
+            proc.wait()
+            raise AssertionError(f"ended ({proc.returncode}) before a line with {text!r}:\n{read.decode()}")
+        read += chunk
+    return read.decode(errors="replace")
