@@ -39,7 +39,7 @@ def rover(*args: str) -> subprocess.CompletedProcess:
 
 def one_process(dataset: Path, out: Path) -> float:
     started = time.monotonic()
-    done = rover("run", "--dataset", str(dataset), "--output", str(out))
+    done = rover("run", "--dataset", str(dataset), "--output", str(out), "--workers", "1")
     if done.returncode != 0:
         raise SystemExit(f"one process failed ({done.returncode}): {done.stderr[-2000:]}")
     return time.monotonic() - started

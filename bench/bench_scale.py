@@ -67,7 +67,7 @@ def run_case(tmp: Path, name: str, scenario: str, sets: list[str]) -> dict:
     data_s = float(json.loads(info.stdout)["duration_s"])
     out = tmp / f"run-{name.replace(' ', '_')}"
     start = time.perf_counter()
-    subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out)], check=True)
+    subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out), "--workers", "1"], check=True)
     run_s = time.perf_counter() - start
     metrics = json.loads((out / "metrics.json").read_text())
     profile = json.loads((out / "run.json").read_text())["profile"]

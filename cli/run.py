@@ -21,8 +21,6 @@ log = logging.getLogger("rover")
 
 WORKERS_ENV = "ROVER_WORKERS"
 """The default of --workers when the command line gives none (the tests run in one process)."""
-SOCKET_PATH_MAX = 100
-"""A Unix socket's path must fit in 108 bytes (sun_path)."""
 
 
 def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
@@ -133,14 +131,12 @@ def _run_in_workers(args: argparse.Namespace, pipeline: Pipeline, count: int) ->
     its share with this command line."""
     from rover.runtime import supervisor, workers
 
-    base = tempfile.gettempdir()
-    base = base if len(base) < SOCKET_PATH_MAX - 40 else "/tmp"
-    with tempfile.TemporaryDirectory(prefix="rover-workers-", dir=base) as folder:
+    with tempfile.TemporaryDirectory(prefix=workers.FOLDER_PREFIX, dir=workers.runs_folder()) as folder:
         hub = f"unixsock-stream/{folder}/hub.sock"
         plan = workers.plan(pipeline, count, hub, workers.costs(pipeline, _measured_cpu(pipeline)))
         for k, group in enumerate(plan.groups):
             log.info("%s runs %s", workers.WorkerPlan.host(k), ", ".join(group))
-        plan_file = Path(folder) / "plan.json"
+        plan_file = Path(folder) / workers.PLAN_FILE
         plan_file.write_text(plan.to_json())
         same = _same_command_line(args)
 

@@ -1,4 +1,4 @@
-"""`rover status`: the live state of a running multi-host pipeline, from its hosts' status queryables."""
+"""`rover status`: the live state of a running pipeline, from its hosts' (or worker processes') status queryables."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
         "status",
         parents=[common],
-        help="live state of a running multi-host pipeline: hosts, rates, queues, lag, errors",
+        help="live state of a running pipeline's hosts (or worker processes): rates, queues, lag, errors",
     )
     p.add_argument("pipeline", metavar="PIPELINE", help="the pipeline file the hosts run")
     add_set(p)
@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rover.pipeline.spec import endpoint_problem, parse, read_document
     from rover.runtime.status import HostStatus, render, report
+    from rover.runtime.workers import running_plans
     from rover.transport.monitor import StatusClient, local_endpoint
 
     for option, value in (("--interval", args.interval), ("--timeout", args.timeout)):
@@ -66,11 +67,19 @@ def run(args: argparse.Namespace) -> int:
             raise BadInput(f"--connect: {problem}")
     listen = [local_endpoint(ep) for host in spec.hosts.values() for ep in host.listen]
     endpoints = list(dict.fromkeys(args.connect or listen))
+    expected = sorted({op.host for op in spec.operators.values() if op.host})
+    local = [] if args.connect else running_plans(spec.name)
+    if len(local) > 1:
+        hubs = ", ".join(plan.hub for plan in local)
+        raise BadInput(
+            f"{len(local)} runs of pipeline {spec.name} over workers on this machine: pass --connect (one of {hubs})"
+        )
+    if local:  # a run of the whole pipeline over worker processes here: its workers are the hosts
+        endpoints, expected = [local[0].hub], local[0].hosts
     if not endpoints:
         raise BadInput(f"{args.pipeline}: no host of pipeline {spec.name} listens on an endpoint: pass --connect")
-    expected = sorted({op.host for op in spec.operators.values() if op.host})
     tls = None
-    if spec.security is not None:
+    if spec.security is not None and not local:
         from rover.security.check import check_security
         from rover.transport.session import TlsFiles
 

@@ -15,9 +15,10 @@ earlier results as they were and writes `failed-run.json` beside them. `run.json
 `failed-run.json`) says how the run ended:
 its `status` (complete, partial, interrupted, failed), the `reason`, the hosts `lost` during a
 partial run (each with its reason and the time it was noticed), what each operator received,
-sent and dropped, and where each operator of this process spent its time (`profile`: decoding,
-handler, encoding, sending, waiting for input, the runtime's share, closing, and its thread's CPU
-time, in seconds).
+sent and dropped, and where each operator spent its time (`profile`: decoding, handler, encoding,
+sending, waiting for input, the runtime's share, closing, and its thread's CPU time, in seconds),
+with in a run across hosts or worker processes the operators of every host that reported them and
+the host each ran on (`hosts`).
 """
 
 from __future__ import annotations
@@ -300,6 +301,7 @@ class RunOutputs(Operator):
             "dropped": sum(sum(c["dropped"].values()) for c in counts.values()),
             "operators": counts,
             "profile": {name: dataclasses.asdict(prof) for name, prof in sorted(outcome.profile.items())},
+            "hosts": dict(sorted(outcome.hosts.items())),
         }
 
     def _evaluate(self, truth: Truth, outcome: RunOutcome) -> None:

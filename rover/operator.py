@@ -164,13 +164,16 @@ class RunOutcome:
     status: RunStatus = "complete"
     reason: str = ""
     counts: Mapping[str, OperatorCounts] = field(default_factory=dict)
-    """per operator of this process"""
+    """per operator of this process, and of the other hosts that reported theirs (`hosts`)"""
     deadline: float | None = None
     """`time.monotonic()` by which closing must be done (after an interrupt); None: no limit"""
     lost: tuple[LostHost, ...] = ()
     """the hosts lost during a `partial` run"""
     profile: Mapping[str, OperatorProfile] = field(default_factory=dict)
-    """per operator of this process that ran, where its time went (`close_s` is filled in for `report`)"""
+    """per operator that ran, as `counts`, where its time went (`close_s` is filled in for `report`,
+    for this process's operators)"""
+    hosts: Mapping[str, str] = field(default_factory=dict)
+    """in a run across hosts (or worker processes), the host of each operator in `counts`"""
 
     @property
     def keeps_outputs(self) -> bool:

@@ -111,7 +111,7 @@ def test_worker_count_is_capped_by_the_units_to_place(tmp_path, monkeypatch):
 
 def test_the_workers_are_the_hosts_of_a_distributed_run(tmp_path):
     pipeline = load_toy(toy(tmp_path, 2))
-    plan = WorkerPlan((("src", "op0"), ("op1",)), HUB)
+    plan = WorkerPlan("toy", (("src", "op0"), ("op1",)), HUB)
     split = workers.as_workers(pipeline, plan)
     assert split.spec.hosts["worker0"].listen == [HUB] and split.spec.hosts["worker1"].connect == [HUB]
     assert {n.name: n.spec.host for n in split.nodes.values()} == {"src": "worker0", "op0": "worker0", "op1": "worker1"}
@@ -181,6 +181,11 @@ def test_two_workers_write_the_bytes_of_one_process(lap_runs, tmp_path):
     assert "worker0 runs replay" in proc.stderr and "worker1 runs" in proc.stderr, proc.stderr
     for name in COMPARED:
         assert (out / name).read_bytes() == (one.output / name).read_bytes(), f"{name} differs from one process's"
+    run, alone = (json.loads((folder / "run.json").read_text()) for folder in (out, one.output))
+    assert run["operators"] == alone["operators"], "run.json counts every worker's operators, as one process's"
+    assert sorted(run["profile"]) == sorted(alone["profile"])
+    assert set(run["hosts"].values()) == {"worker0", "worker1"} and sorted(run["hosts"]) == sorted(alone["profile"])
+    assert alone["hosts"] == {}
     assert "run complete" in proc.stdout, proc.stdout
 
 
@@ -215,15 +220,20 @@ def test_a_killed_worker_leaves_partial_results_and_exit_3(simulated, tmp_path):
 
 
 @pytest.mark.slow
-def test_sigint_to_the_run_stops_every_worker(simulated, tmp_path):
-    """SIGINT to `rover run` alone (not its process group): passed on, every worker stops, exit 130,
-    the outputs kept as an interrupted run's."""
+def test_status_shows_the_workers_and_sigint_stops_them_all(simulated, tmp_path):
+    """`rover status` of the pipeline finds the run's workers on this machine, both answering; SIGINT
+    to `rover run` alone (not its process group) is passed on: every worker stops, exit 130, the
+    outputs kept as an interrupted run's."""
     dataset = simulated("paper", 2, "trajectory.laps=1")
     out = tmp_path / "out"
     proc = popen_rover("run", "--dataset", str(dataset), "--output", str(out), "--workers", "2", "--speed", "4")
     wait_until(lambda: len(worker_pids(proc.pid)) == 2, "two workers", procs=[proc])
     pids = worker_pids(proc.pid)
     head = wait_for_line(proc, PROGRESS)
+    status = run_rover("status", str(DEFAULT), "--once", "--json", "--interval", "0.2")
+    assert status.returncode == 0, status.stderr
+    hosts = {h["host"]: h for h in json.loads(status.stdout)["hosts"]}
+    assert sorted(hosts) == ["worker0", "worker1"] and all(h["answering"] for h in hosts.values()), hosts
     sent = time.monotonic()
     proc.send_signal(signal.SIGINT)
     _stdout, err = proc.communicate(timeout=60)

@@ -4,7 +4,8 @@ A host's presence is a liveliness token `rover/<pipeline>/_hosts/<host>/<digest>
 `digest` identifies the pipeline's structure (hosts, placement, wiring), so a process of another
 pipeline or version is not taken for a host of this run; `zid` is the Zenoh session of the process,
 so a second process claiming the same host is told apart. A host that stops on a signal also puts
-its reason on `.../bye` before it leaves.
+its reason on `.../bye` before it leaves; one whose part ended puts its operators' counts and
+profiles on `.../report` (rover/runtime/host_report.py) before its `done`.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import NamedTuple
 
 PREFIX = "rover"
 HOSTS = "_hosts"
-STATES = ("ready", "done", "bye")
+STATES = ("ready", "done", "bye", "report")
 
 
 class HostKey(NamedTuple):

@@ -11,11 +11,14 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import zenoh
 
 from rover.pipeline.validation import Pipeline
+from rover.runtime import host_report
 from rover.runtime.credit import Acks, Credits
+from rover.runtime.host_report import HostReport, ReportError
 from rover.runtime.hosts import HostWatch
 from rover.runtime.status import HostStatus, OperatorStatus, status_key
 from rover.runtime.tasks import OperatorTask, Task, described
@@ -23,6 +26,8 @@ from rover.runtime.tasks import OperatorTask, Task, described
 log = logging.getLogger("rover")
 TLS_HINT = " Does it have the same ca.pem? `rover check PIPELINE --host H` on each machine checks its certificate)"
 """A TLS handshake refused (another CA, a certificate not naming the address) looks like a host that never comes."""
+REPORT_WAIT_S = 2.0
+"""How long a host, everybody done, waits for the reports of the others (put before their `done`)."""
 HUB_LINGER_S = 5.0
 """How long a hub, done, waits for the hosts behind it to leave first (their `done` tokens pass through it)."""
 
@@ -52,6 +57,8 @@ class HostProtocol:
         self.started = time.monotonic()
         self.on_running: Callable[[], None] = lambda: None
         """called once every host has subscribed, as this one starts its tasks"""
+        self.reports: dict[str, HostReport] = {}
+        """what the other hosts' operators did, by host (those that ended well and reported)"""
 
     def flow_control(self, session: zenoh.Session, live: Callable[[str], bool]) -> None:
         """Credits on every output (not live) with consumers on other hosts; acks on every input fed
@@ -140,9 +147,11 @@ class HostProtocol:
             log.debug("host %s: tasks ended (stopped: %s, every stream ended: %s)", self.host, stopped, clean)
             if clean:
                 self.state = "finishing"
+                watch.say_report(host_report.encode(self._report()))
                 watch.declare("done")
                 if not stopped:
                     watch.wait_done(wanted, self.stop)
+                    self._read_reports(watch.wait_reports(watch.done, REPORT_WAIT_S), watch.done)
                 behind = self.pipeline.hubs().get(self.host)
                 if behind and (stopped or not self.stop.is_set()):
                     watch.wait_gone(behind, HUB_LINGER_S)  # their last messages pass through this one
@@ -152,6 +161,34 @@ class HostProtocol:
             if status is not None:
                 status.undeclare()
             watch.close()
+
+    def _report(self) -> HostReport:
+        """What this host's operators received, sent and dropped, and where their time went."""
+        counts = {}
+        for task in self.tasks:
+            c = task.stats.counts(task.op.drops)
+            if isinstance(task, OperatorTask):
+                c = replace(c, dropped={**c.dropped, **task.inbox_drops()})
+            counts[task.name] = c
+        return HostReport(counts, {task.name: task.clock.profile() for task in self.tasks})
+
+    def _read_reports(self, payloads: dict[str, bytes], done: set[str]) -> None:
+        """The other hosts' reports, each only for operators placed on it; one that cannot be read is left out."""
+        placed = {name: node.spec.host for name, node in self.pipeline.nodes.items()}
+        for host, payload in sorted(payloads.items()):
+            try:
+                report = host_report.decode(payload)
+            except ReportError as exc:
+                log.warning("host %s: the report of host %s is left out of run.json: %s", self.host, host, exc)
+                continue
+            if any(placed.get(name) != host for name in report.counts):
+                log.warning(
+                    "host %s: the report of host %s names operators not placed there: left out", self.host, host
+                )
+                continue
+            self.reports[host] = report
+        for host in sorted(done - set(self.reports)):
+            log.info("host %s: no report from host %s: its operators are not in run.json", self.host, host)
 
     def _ended_cleanly(self) -> bool:
         """Every task of this host ended its outputs at the end of its input (none cut, nothing aborted)."""

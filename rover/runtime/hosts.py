@@ -105,6 +105,8 @@ class HostWatch:
         self.lost_at: dict[str, float] = {}
         """`time.monotonic()` when each lost host was noticed"""
         self.byes: dict[str, str] = {}
+        self.reports: dict[str, bytes] = {}
+        """host -> what it put on its `report` key (rover/runtime/host_report.py)"""
         self.running = False
         self.said_bye = False
         self.on_lost: Callable[[str], None] = lambda _host: None
@@ -114,10 +116,10 @@ class HostWatch:
         self._tokens: list[zenoh.LivelinessToken] = []
         # Both in Zenoh's own thread (not indirect), so a `bye` is handled before the withdrawal behind it.
         on_token = zenoh.handlers.Callback(self._on_token, indirect=False)
-        on_bye = zenoh.handlers.Callback(self._on_bye, indirect=False)
+        on_put = zenoh.handlers.Callback(self._on_put, indirect=False)
         self._subscribers = [
             session.liveliness().declare_subscriber(keys.host_tokens(pipeline), on_token, history=True),
-            session.declare_subscriber(keys.host_tokens(pipeline), on_bye),
+            session.declare_subscriber(keys.host_tokens(pipeline), on_put),
         ]
 
     def lost_hosts(self) -> list[str]:
@@ -143,6 +145,19 @@ class HostWatch:
             express=True,
         )
 
+    def say_report(self, report: bytes) -> None:
+        """Tell the others what this host's operators did (before its `done`)."""
+        self.session.put(self._key("report"), report, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def wait_reports(self, hosts: Collection[str], timeout_s: float) -> dict[str, bytes]:
+        """The reports of `hosts` (this one left out), waiting at most `timeout_s` for the missing ones."""
+        deadline = time.monotonic() + timeout_s
+        others = set(hosts) - {self.me}
+        with self._cond:
+            while not others <= set(self.reports) and time.monotonic() < deadline:
+                self._cond.wait(timeout=POLL_S)
+            return {h: r for h, r in self.reports.items() if h in others}
+
     def close(self) -> None:
         for token in self._tokens:
             token.undeclare()
@@ -165,14 +180,19 @@ class HostWatch:
             )
         return None
 
-    def _on_bye(self, sample: zenoh.Sample) -> None:
+    def _on_put(self, sample: zenoh.Sample) -> None:
         parsed = self._parse(str(sample.key_expr))
-        if parsed is None or parsed.state != "bye":
+        if parsed is None or parsed.state not in ("bye", "report"):
             return
-        reason = " ".join(sample.payload.to_bytes().decode("utf-8", "replace").split())[:200]
         with self._cond:
-            if self.ready.get(parsed.host) == parsed.zid:
-                self.byes[parsed.host] = reason or "stopped"
+            if self.ready.get(parsed.host) != parsed.zid:
+                return
+            if parsed.state == "report":
+                self.reports[parsed.host] = sample.payload.to_bytes()
+                self._cond.notify_all()
+                return
+            reason = " ".join(sample.payload.to_bytes().decode("utf-8", "replace").split())[:200]
+            self.byes[parsed.host] = reason or "stopped"
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         parsed = self._parse(str(sample.key_expr))

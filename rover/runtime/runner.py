@@ -188,7 +188,16 @@ class Runner:
             raise failed
 
     def _outcome(self, error: RoverError | None) -> RunOutcome:
-        return replace(self._ending(error), profile={t.name: t.clock.profile() for t in self.tasks})
+        """How the run ended, with the counts and profiles of this host's operators and of the other
+        hosts' that reported them."""
+        ending = self._ending(error)
+        counts, profile = dict(ending.counts), {t.name: t.clock.profile() for t in self.tasks}
+        hosts = {t.name: self.host for t in self.tasks} if self.distributed and self.host else {}
+        for host, report in self.hosts.reports.items():
+            counts |= report.counts
+            profile |= report.profile
+            hosts |= dict.fromkeys(report.counts, host)
+        return replace(ending, counts=counts, profile=profile, hosts=hosts)
 
     def _ending(self, error: RoverError | None) -> RunOutcome:
         counts = {t.name: t.stats.counts(t.op.drops) for t in self.tasks}

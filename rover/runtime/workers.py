@@ -19,8 +19,10 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from rover.errors import BadInput
 from rover.operator import Source
@@ -39,6 +41,8 @@ CUT_COST = 1e-6
 class WorkerPlan:
     """Which operators each worker runs, and where worker 0 listens for the others."""
 
+    pipeline: str
+    """the pipeline's name (`rover status` finds a run's workers by it)"""
     groups: tuple[tuple[str, ...], ...]
     hub: str
     """worker 0's endpoint (`unixsock-stream/PATH`)"""
@@ -47,8 +51,12 @@ class WorkerPlan:
     def host(k: int) -> str:
         return f"{WORKER}{k}"
 
+    @property
+    def hosts(self) -> list[str]:
+        return [self.host(k) for k in range(len(self.groups))]
+
     def to_json(self) -> str:
-        return json.dumps({"groups": [list(g) for g in self.groups], "hub": self.hub})
+        return json.dumps({"pipeline": self.pipeline, "groups": [list(g) for g in self.groups], "hub": self.hub})
 
     @classmethod
     def from_json(cls, text: str, where: str) -> WorkerPlan:
@@ -56,10 +64,39 @@ class WorkerPlan:
         try:
             doc = json.loads(text)
             groups = tuple(tuple(str(name) for name in group) for group in doc["groups"])
-            hub = str(doc["hub"])
+            return cls(str(doc["pipeline"]), groups, str(doc["hub"]))
         except (ValueError, KeyError, TypeError) as exc:
             raise BadInput(f"{where}: not a worker plan ({type(exc).__name__}: {exc})") from None
-        return cls(groups, hub)
+
+
+PLAN_FILE = "plan.json"
+FOLDER_PREFIX = "rover-workers-"
+"""A run's private folder (`runs_folder`): its plan and worker 0's socket."""
+SOCKET_PATH_MAX = 60
+"""The longest folder for runs: a Unix socket's path must fit in 108 bytes (sun_path)."""
+
+
+def runs_folder() -> str:
+    """Where a run over workers makes its private folder: the temporary directory, or /tmp when its
+    path leaves no room for a socket's."""
+    folder = tempfile.gettempdir()
+    return folder if len(folder) <= SOCKET_PATH_MAX else "/tmp"
+
+
+def running_plans(pipeline: str, folder: str | None = None) -> list[WorkerPlan]:
+    """The plans of this user's runs of `pipeline` over workers on this machine, still listening."""
+    plans = []
+    for path in sorted(Path(folder or runs_folder()).glob(f"{FOLDER_PREFIX}*/{PLAN_FILE}")):
+        try:
+            if path.stat().st_uid != os.getuid():
+                continue
+            found = WorkerPlan.from_json(path.read_text(), str(path))
+        except (OSError, BadInput):
+            continue  # a run ending as we look, or not one of ours
+        socket = found.hub.removeprefix("unixsock-stream/")
+        if found.pipeline == pipeline and Path(socket).exists():
+            plans.append(found)
+    return plans
 
 
 def available_cores() -> int:
@@ -113,7 +150,7 @@ def plan(pipeline: Pipeline, count: int, hub: str, cost: Mapping[str, float]) ->
     order = list(pipeline.nodes)
     sources = {name for name, node in pipeline.nodes.items() if issubclass(node.cls, Source)}
     groups.sort(key=lambda g: (not sources & set(g), min(order.index(name) for name in g)))
-    return WorkerPlan(tuple(tuple(sorted(g, key=order.index)) for g in groups), hub)
+    return WorkerPlan(pipeline.name, tuple(tuple(sorted(g, key=order.index)) for g in groups), hub)
 
 
 def as_workers(pipeline: Pipeline, worker_plan: WorkerPlan) -> Pipeline:
