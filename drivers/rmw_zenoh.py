@@ -69,13 +69,44 @@ def _jazzy() -> Typestore:
     return get_typestore(Stores.ROS2_JAZZY)
 
 
+def _rosidl_base(base: Any) -> Any:
+    """A base type as rosidl hashes it: `char` is `uint8` (rosidl_parser maps it before the type
+    description is made; rosbags hashes it as `char`, type id 13)."""
+    name, size = base
+    return ("uint8", size) if name == "char" else base
+
+
+def _rosidl_field(desc: Any) -> Any:
+    kind, spec = desc
+    if kind == Nodetype.BASE:
+        return kind, _rosidl_base(spec)
+    if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        (item_kind, item), count = spec
+        return kind, ((item_kind, _rosidl_base(item) if item_kind == Nodetype.BASE else item), count)
+    return desc
+
+
+@cache
+def _hashing_store(jazzy: bool) -> Typestore:
+    """Jazzy's types (or Rover's own) as rosidl sees them when it hashes them."""
+    source = _jazzy() if jazzy else typestore
+    view = get_typestore(Stores.EMPTY)
+    view.register(
+        {
+            name: (consts, [(field, _rosidl_field(desc)) for field, desc in fields])
+            for name, (consts, fields) in source.fielddefs.items()
+        }
+    )
+    return view
+
+
 def type_hash(typename: str) -> str:
-    """The RIHS01 type hash a Jazzy node computes: from rosbags' Jazzy store for standard types,
-    from Rover's own store for the types only it has (rover_msgs)."""
-    store = _jazzy() if typename in _jazzy().fielddefs else typestore
-    if typename not in store.fielddefs:
+    """The RIHS01 type hash a Jazzy node computes: from Jazzy's definition for standard types, from
+    Rover's own for the types only it has (rover_msgs), with `char` hashed as rosidl does."""
+    jazzy = typename in _jazzy().fielddefs
+    if not jazzy and typename not in typestore.fielddefs:
         raise ValueError(f"unknown message type {typename!r}")
-    return store.hash_rihs01(typename)
+    return _hashing_store(jazzy).hash_rihs01(typename)
 
 
 def _references(fields: Any) -> list[str]:

@@ -29,7 +29,7 @@ def good() -> dict:
     return json.loads(host_report.encode(sample()))
 
 
-NO_COUNTS = {"received": {}, "sent": {}, "dropped": {}}
+NO_COUNTS: dict[str, dict[str, int]] = {"received": {}, "sent": {}, "dropped": {}}
 
 
 @pytest.mark.parametrize(
