@@ -38,13 +38,23 @@ netns-tools:
 		{ apt-get update -q >/dev/null 2>&1 && apt-get install -y -q openssl >/dev/null 2>&1; } || \
 		echo "make: could not install openssl; tests/test_certs.py will say what is missing"
 
+# An independent ROS 2 client for tests/test_ros2_interop.py, in an environment of its own: zenoh-ros2-sdk
+# on the Zenoh that rmw_zenoh pins for Jazzy (1.7), not on ours. Without it those tests fail saying to make
+# it (ROVER_SKIP_INTEROP=1 skips them).
+INTEROP := .venv-interop
+$(INTEROP)/.installed: tests/ros2_interop/requirements.txt
+	$(PYTHON) -m venv $(INTEROP)
+	$(INTEROP)/bin/python -m pip install --quiet --upgrade pip
+	$(INTEROP)/bin/python -m pip install --quiet -r tests/ros2_interop/requirements.txt
+	touch $@
+
 # The suite on both cores, then the multi-host tests one at a time (each runs several processes).
-test: lint netns-tools
+test: lint netns-tools $(INTEROP)/.installed
 	$(BIN)/python -m pytest -q -n 2 -m "not netns" --durations=15
 	$(BIN)/python -m pytest -q -m netns --durations=5
 
 # The unit and contract tests only, on both cores: what to run while iterating (docs/contributing.md).
-test-fast: $(STAMP)
+test-fast: $(STAMP) $(INTEROP)/.installed
 	$(BIN)/python -m pytest -q -n 2 -m "not slow and not netns"
 
 $(VENV)/.bench: pyproject.toml $(STAMP)
@@ -58,4 +68,4 @@ check: $(STAMP)
 	$(BIN)/rover check pipeline.yaml
 
 clean:
-	rm -rf $(VENV) rover-out build *.egg-info
+	rm -rf $(VENV) $(INTEROP) rover-out build *.egg-info
