@@ -54,6 +54,7 @@ class Process:
     """A process of the interop environment that speaks JSON lines on stdout."""
 
     def __init__(self, python: Path, script: str, *args: Any):
+        self.script = script
         self.proc = subprocess.Popen(
             [str(python), str(HERE / script), *map(str, args)],
             stdin=subprocess.PIPE,
@@ -71,7 +72,7 @@ class Process:
         if not text:
             self.proc.kill()
             _out, err = self.proc.communicate()
-            raise AssertionError(f"{self.proc.args[1]} printed nothing more (exit {self.proc.returncode}):\n{err}")
+            raise AssertionError(f"{self.script} printed nothing more (exit {self.proc.returncode}):\n{err}")
         self.lines.append(text)
         return text.strip()
 

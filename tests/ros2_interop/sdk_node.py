@@ -78,7 +78,12 @@ def main() -> int:
         sub = ROS2Subscriber(topic, typename, on_msg, node_name=NODE, namespace=NAMESPACE, router_port=port,
                              type_hash=type_hash)  # fmt: skip
         say({"ready": True})
-        threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
+
+        def until_stdin_ends() -> None:
+            sys.stdin.read()
+            done.set()
+
+        threading.Thread(target=until_stdin_ends, daemon=True).start()
         done.wait(DEADLINE_S)
         sub.close()
     elif command == "pub":
