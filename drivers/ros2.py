@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Annotated, Any
 
 import zenoh
+import zenoh.ext
 
 from rover.drivers import rmw_zenoh as rz
 from rover.errors import BadInput
@@ -57,7 +58,10 @@ ENCLAVE = "/"
 """the default ROS security enclave (tokens carry it; Rover does not use SROS2)"""
 NODE_ENTITY_ID = 0
 """the node's id in its tokens; its publishers or subscriptions are numbered from 1"""
-TOPIC_KEYS = ("topic", "type", "depth", "reliable")
+TOPIC_KEYS = ("topic", "type", "depth", "reliable", "durability")
+DURABILITIES = ("volatile", "transient_local")
+HEARTBEAT_S = 0.5
+"""A reliable transient-local publisher's sporadic heartbeat (rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD)"""
 DEFAULT_DEPTH = 10
 """rclcpp/rclpy's usual `QoS(10)`"""
 _TOPIC_NAME = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
@@ -74,10 +78,13 @@ class TopicSpec:
     type: str
     depth: int = DEFAULT_DEPTH
     reliable: bool = True
+    transient_local: bool = False
+    """a publisher keeps its last `depth` samples for subscriptions that join later (latched:
+    `/tf_static`, a map); a subscription asks the publishers it finds for theirs"""
 
     @property
     def qos(self) -> str:
-        return rz.qos_string(self.reliable, self.depth)
+        return rz.qos_string(self.reliable, self.depth, self.transient_local)
 
 
 RouterEndpoint = Annotated[str, Matches(r"[a-z0-9-]+/\S+", "a Zenoh endpoint like tcp/127.0.0.1:7447")]
@@ -90,7 +97,8 @@ class Ros2Params(Checked):
     """What both directions share: the topics (one port each) and where the ROS graph is."""
 
     topics: dict[str, dict[str, Any]]
-    """port -> {topic, type, depth (10), reliable (true)}; a relative topic is resolved in `namespace`"""
+    """port -> {topic, type, depth (10), reliable (true), durability (volatile, or transient_local)};
+    a relative topic is resolved in `namespace`"""
     router: RouterEndpoint = "tcp/127.0.0.1:7447"
     """the ROS 2 Zenoh router (`ros2 run rmw_zenoh_cpp rmw_zenohd`), connected to as a client"""
     domain_id: NonNegativeInt = 0
@@ -142,7 +150,10 @@ def parse_topics(topics: Mapping[str, Any] | None, namespace: str = "/") -> dict
             raise ValueError(f"{where}: 'depth' must be an integer >= 1, got {depth!r}")
         if not isinstance(reliable, bool):
             raise ValueError(f"{where}: 'reliable' must be true or false, got {reliable!r}")
-        specs[port] = TopicSpec(topic, typename, depth, reliable)
+        durability = entry.get("durability", DURABILITIES[0])
+        if durability not in DURABILITIES:
+            raise ValueError(f"{where}: 'durability' must be {' or '.join(DURABILITIES)}, got {durability!r}")
+        specs[port] = TopicSpec(topic, typename, depth, reliable, durability == "transient_local")
     return specs
 
 
@@ -255,10 +266,7 @@ class Ros2Subscribe(_Ros2Node, Source):
         self._warned: set[tuple[str, str]] = set()
         self._open(params, self.topics)
         self.subscribers = [
-            self.session.declare_subscriber(
-                rz.topic_key(params.domain_id, spec.topic, spec.type, rz.ANY_HASH),
-                zenoh.handlers.Callback(self._receiver(port), indirect=False),
-            )
+            self._subscribe(rz.topic_key(params.domain_id, spec.topic, spec.type, rz.ANY_HASH), port, spec)
             for port, spec in self.topics.items()
         ]
         log.info(
@@ -267,6 +275,19 @@ class Ros2Subscribe(_Ros2Node, Source):
             params.namespace,
             params.router,
             ", ".join(f"{s.topic} ({s.type})" for s in self.topics.values()),
+        )
+
+    def _subscribe(self, key: str, port: str, spec: TopicSpec) -> Any:
+        """A subscriber as rmw_zenoh declares one: a transient-local one also finds the publishers
+        with a cache (late or early) and asks each for its last `depth` samples, and a reliable one
+        recovers what it missed from their heartbeats."""
+        handler = zenoh.handlers.Callback(self._receiver(port), indirect=False)
+        if not spec.transient_local:
+            return self.session.declare_subscriber(key, handler)
+        history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=spec.depth)
+        recovery = zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True) if spec.reliable else None
+        return zenoh.ext.declare_advanced_subscriber(
+            self.session, key, handler, history=history, recovery=recovery, subscriber_detection=True
         )
 
     def _receiver(self, port: str) -> Callable[[zenoh.Sample], None]:
@@ -340,8 +361,9 @@ class Ros2Subscribe(_Ros2Node, Source):
 
 class Ros2Publish(_Ros2Node, Operator):
     """Publishes each input on the ROS 2 topic `topics` gives its port, as an rmw_zenoh publisher does:
-    CDR on the topic's key with an attachment (sequence number from 1, the message's stamp as source
-    timestamp, the publisher's GID)."""
+    CDR on the topic's key with an attachment (sequence number from 1, the publish time on the system
+    clock as source timestamp, the publisher's GID); the message's own stamp stays in its header. A
+    transient-local topic keeps its last `depth` samples for subscriptions that join later."""
 
     kind = rz.PUBLISHER
     Params = Ros2Params
@@ -358,11 +380,7 @@ class Ros2Publish(_Ros2Node, Operator):
         self.gids = {port: rz.gid(key) for port, key in self.entity_keys.items()}
         self.sequence = dict.fromkeys(self.topics, 0)
         self.publishers = {
-            port: self.session.declare_publisher(
-                rz.topic_key(params.domain_id, spec.topic, spec.type, rz.type_hash(spec.type)),
-                reliability=zenoh.Reliability.RELIABLE if spec.reliable else zenoh.Reliability.BEST_EFFORT,
-                congestion_control=zenoh.CongestionControl.DROP,
-            )
+            port: self._publisher(rz.topic_key(params.domain_id, spec.topic, spec.type, rz.type_hash(spec.type)), spec)
             for port, spec in self.topics.items()
         }
         log.info(
@@ -373,11 +391,30 @@ class Ros2Publish(_Ros2Node, Operator):
             ", ".join(f"{s.topic} ({s.type})" for s in self.topics.values()),
         )
 
+    def _publisher(self, key: str, spec: TopicSpec) -> Any:
+        """A publisher as rmw_zenoh declares one (rmw_publisher_data.cpp): a transient-local one keeps a
+        cache of `depth` samples and can be detected by late subscriptions; a reliable one of those
+        also sends sporadic heartbeats so they recover a missed last sample."""
+        reliability = zenoh.Reliability.RELIABLE if spec.reliable else zenoh.Reliability.BEST_EFFORT
+        congestion = zenoh.CongestionControl.DROP
+        if not spec.transient_local:
+            return self.session.declare_publisher(key, reliability=reliability, congestion_control=congestion)
+        miss = zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=HEARTBEAT_S) if spec.reliable else None
+        return zenoh.ext.declare_advanced_publisher(
+            self.session,
+            key,
+            reliability=reliability,
+            congestion_control=congestion,
+            cache=zenoh.ext.CacheConfig(spec.depth),
+            sample_miss_detection=miss,
+            publisher_detection=True,
+        )
+
     def on_input(self, port: str, msg: Any, stamp_ns: int) -> tuple[Emit, ...]:
         spec = self.topics[port]
         payload = msg.payload if isinstance(msg, Raw) else serialize(msg, spec.type)
         self.sequence[port] += 1
-        att = rz.attachment(self.sequence[port], stamp_ns, self.gids[port])
+        att = rz.attachment(self.sequence[port], time.time_ns(), self.gids[port])
         self.publishers[port].put(payload, attachment=att)
         return ()
 

@@ -205,7 +205,7 @@ def test_rover_receives_what_an_independent_publisher_sends(interop, router, the
     until Rover has it (the route may take a moment), then three more, all received in order."""
     topics = {"imu": {"topic": "/imu/data", "type": IMU}}
     sub = Collector(Ros2Subscribe(Ros2SubscribeParams(topics=topics, router=endpoint(router), node="rover")))
-    sdk = Process(interop, "sdk_node.py", "pub", router, "/imu/data", IMU, their_hash)
+    sdk = Process(interop, "sdk_node.py", "pub", router, "/imu/data", IMU, "--hash", their_hash)
     try:
         assert sdk.json() == {"ready": True}
         deadline, sent = time.monotonic() + WAIT_S, 0
@@ -285,3 +285,60 @@ def test_rover_reads_the_independent_clients_tokens(interop, router):
     assert (subscription.namespace, subscription.topic, subscription.typename) == ("/interop", "/chatter", STRING)
     assert subscription.type_hash == type_hash(STRING)
     assert subscription.qos == qos_string(reliable=True, depth=10), subscription.qos
+
+
+# -- durability: latched topics for late joiners
+
+
+def messages(sdk: Process, count: int) -> list[dict[str, Any]]:
+    """The next `count` messages the SDK node prints (its other lines skipped)."""
+    got: list[dict[str, Any]] = []
+    while len(got) < count:
+        doc = sdk.json()
+        if "msg" in doc:
+            got.append(doc["msg"])
+    return got
+
+
+LATCHED = {"topic": "/latched", "type": STRING, "depth": 2, "durability": "transient_local"}
+"""A topic of one name chunk: zenoh-ros2-sdk 0.1.8 finds transient-local publishers of those only."""
+
+
+def test_a_late_independent_subscription_gets_rovers_latched_samples(interop, router):
+    """Rover publishes three samples on a transient-local topic of depth 2 before anyone subscribes;
+    an SDK subscription (transient local) that joins later receives the last two, in order, and lists
+    Rover's publisher as transient local."""
+    pub = Ros2Publish(Ros2Params(topics={"map": LATCHED}, router=endpoint(router), node="rover"))
+    try:
+        for i in range(3):
+            pub.on_input("map", make(STRING, data=f"map {i}"), STAMP_NS + i)
+        sdk = Process(interop, "sdk_node.py", "sub", router, "/latched", STRING, 2, "--transient-local", 2)
+        got = [msg["data"] for msg in messages(sdk, 2)]
+        sdk.close()
+        info = Process(interop, "sdk_node.py", "info", router, "/latched")
+        (publisher,) = info.json()["publishers"]
+        info.close()
+    finally:
+        pub.close()
+    assert got == ["map 1", "map 2"]
+    assert publisher["qos"] == {"reliability": "RELIABLE", "durability": "TRANSIENT_LOCAL", "history": "KEEP_LAST",
+                                "depth": 2}  # fmt: skip
+
+
+def test_a_late_rover_subscription_gets_an_independent_publishers_latched_samples(interop, router):
+    """The SDK's publisher on a zenoh-ext cache of depth 2 (as rmw_zenoh declares a transient-local
+    one) sends three samples; a transient-local Rover subscription that joins later receives the last
+    two, in order."""
+    sdk = Process(interop, "sdk_node.py", "pub", router, "/latched", STRING, "--transient-local", 2)
+    try:
+        assert sdk.json() == {"ready": True}
+        for i in range(3):
+            sdk.send({"data": f"map {i}"})
+            assert sdk.json() == {"sent": i + 1}
+        sub = Collector(Ros2Subscribe(Ros2SubscribeParams(topics={"map": LATCHED}, router=endpoint(router))))
+        got = sub.wait_for(2)
+        sub.close()
+    finally:
+        err = sdk.close()
+    assert "Error" not in err, err
+    assert [e.msg.data for e in got] == ["map 1", "map 2"] and not sub.op.drops

@@ -2,17 +2,19 @@
 interop environment (its own Zenoh), with the message definitions vendored beside it (msgs/: no
 network). One command per run, everything it saw printed as JSON lines on stdout:
 
-    python sdk_node.py sub PORT TOPIC TYPE COUNT [HASH]
-        prints {"ready": true} once subscribed, then each message received as {"msg": {...}},
-        until COUNT have come, its stdin ends, or the deadline
-    python sdk_node.py pub PORT TOPIC TYPE HASH
-        declares a publisher (HASH: "" for its own, or e.g. TypeHashNotSupported as Humble), prints
-        {"ready": true}, then publishes each JSON message read from stdin, one per line, saying
-        {"sent": N} after each; leaves at the end of its input
+    python sdk_node.py sub PORT TOPIC TYPE COUNT [--hash H] [--transient-local DEPTH]
+        prints {"ready": true} once subscribed, then each message received as {"msg": {...}}
+        (a transient-local one: the publishers' history too), until COUNT have come, its stdin
+        ends, or the deadline
+    python sdk_node.py pub PORT TOPIC TYPE [--hash H] [--transient-local DEPTH]
+        declares a publisher (--hash e.g. TypeHashNotSupported: as a Humble node; transient local:
+        with a cache), prints {"ready": true}, then publishes each JSON message read from stdin,
+        one per line, saying {"sent": N} after each; leaves at the end of its input
     python sdk_node.py info PORT TOPIC
         prints the topic's publishers and subscribers as `ros2 topic info --verbose` lists them
 """
 
+import argparse
 import json
 import sys
 import threading
@@ -20,8 +22,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
+import zenoh.ext
 from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_registry, get_topic_info
-from zenoh_ros2_sdk.qos import QosProfile
+from zenoh_ros2_sdk.qos import QosDurability, QosProfile
 from zenoh_ros2_sdk.session import ZenohSession
 
 MSGS = Path(__file__).parent / "msgs"
@@ -60,23 +64,64 @@ def say(doc: dict[str, Any]) -> None:
     print(json.dumps(doc), flush=True)
 
 
+class CachedPublisher(ROS2Publisher):
+    """The SDK's publisher (its tokens, attachments, CDR) on a zenoh-ext advanced publisher with a
+    cache of `depth` samples that late subscriptions can find, as rmw_zenoh declares a
+    transient-local one (the SDK's own keeps no cache)."""
+
+    def _declare_zenoh_publisher(self, keyexpr: str) -> Any:
+        return zenoh.ext.declare_advanced_publisher(
+            self.session_mgr.session,
+            keyexpr,
+            cache=zenoh.ext.CacheConfig(self.qos_profile.history_depth),
+            publisher_detection=True,
+        )
+
+
+class HistorySubscriber(ROS2Subscriber):
+    """The SDK's subscription (its tokens, CDR) on a zenoh-ext advanced subscriber that asks the
+    publishers it finds, early or late, for their last `depth` samples, as rmw_zenoh declares a
+    transient-local one. (The SDK's own history query keeps one sample per key: Zenoh's default
+    consolidation.)"""
+
+    def _query_historical_data(self) -> None:
+        self.sub.undeclare()  # type: ignore[has-type]  # the SDK's plain subscriber, declared before this runs
+        history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=self.qos_profile.history_depth)
+        self.sub = zenoh.ext.declare_advanced_subscriber(
+            self.session_mgr.session, self.keyexpr, self._listener, history=history, subscriber_detection=True
+        )
+
+
+def arguments() -> argparse.Namespace:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("command", choices=("sub", "pub", "info"))
+    ap.add_argument("port", type=int)
+    ap.add_argument("topic")
+    ap.add_argument("type", nargs="?")
+    ap.add_argument("count", type=int, nargs="?", default=1)
+    ap.add_argument("--hash", default=None, help="the type hash to use (default: the SDK's own)")
+    ap.add_argument("--transient-local", type=int, metavar="DEPTH", help="durability transient local, depth DEPTH")
+    return ap.parse_args()
+
+
 def main() -> int:
     get_registry(str(MSGS))  # the vendored definitions, not a clone from GitHub
-    command, port = sys.argv[1], int(sys.argv[2])
-    if command == "sub":
-        topic, typename, count = sys.argv[3], sys.argv[4], int(sys.argv[5])
-        type_hash = sys.argv[6] if len(sys.argv) > 6 else None
+    args = arguments()
+    port = args.port
+    latched = args.transient_local is not None
+    qos = QosProfile(durability=QosDurability.TRANSIENT_LOCAL, history_depth=args.transient_local) if latched else None
+    where = {"node_name": NODE, "namespace": NAMESPACE, "router_port": port, "type_hash": args.hash or None, "qos": qos}
+    if args.command == "sub":
         got: list[Any] = []
         done = threading.Event()
 
         def on_msg(msg: Any) -> None:
             say({"msg": plain(msg)})
             got.append(msg)
-            if len(got) >= count:
+            if len(got) >= args.count:
                 done.set()
 
-        sub = ROS2Subscriber(topic, typename, on_msg, node_name=NODE, namespace=NAMESPACE, router_port=port,
-                             type_hash=type_hash)  # fmt: skip
+        sub = (HistorySubscriber if latched else ROS2Subscriber)(args.topic, args.type, on_msg, **where)
         say({"ready": True})
 
         def until_stdin_ends() -> None:
@@ -86,21 +131,18 @@ def main() -> int:
         threading.Thread(target=until_stdin_ends, daemon=True).start()
         done.wait(DEADLINE_S)
         sub.close()
-    elif command == "pub":
-        topic, typename, type_hash = sys.argv[3], sys.argv[4], sys.argv[5] or None
-        pub = ROS2Publisher(topic, typename, node_name=NODE, namespace=NAMESPACE, router_port=port, type_hash=type_hash)
+    elif args.command == "pub":
+        pub = (CachedPublisher if latched else ROS2Publisher)(args.topic, args.type, **where)
         say({"ready": True})
         store = ZenohSession.get_instance("127.0.0.1", port).store
         for sent, line in enumerate(sys.stdin, 1):
-            pub.publish(**build(store, typename, json.loads(line)))
+            pub.publish(**build(store, args.type, json.loads(line)))
             say({"sent": sent})
         pub.close()
-    elif command == "info":
-        info = get_topic_info(sys.argv[3], router_port=port, timeout=2.0, verbose=True)
+    else:
+        info = get_topic_info(args.topic, router_port=port, timeout=2.0, verbose=True)
         ends = {"publishers": info.publishers, "subscribers": info.subscribers} if info else {}
         say({kind: [plain_endpoint(e) for e in found] for kind, found in ends.items()})
-    else:
-        raise SystemExit(f"unknown command {command!r}")
     ZenohSession.get_instance("127.0.0.1", port).close()
     return 0
 
