@@ -1,11 +1,15 @@
 """The rmw_zenoh wire format: key expressions, liveliness tokens, QoS strings and attachments.
 
 Pure functions, no sessions: `rover.drivers.ros2` uses them to talk to ROS 2 nodes that run
-`rmw_zenoh_cpp` directly, without a bridge. The format follows rmw_zenoh_cpp 0.2.4 and later,
-as released for ROS 2 Jazzy (ros2-gbp/rmw_zenoh-release, tags release/jazzy/rmw_zenoh_cpp/0.2.4-1
-to 0.2.10-1, and its docs/design.md); older Jazzy releases (0.2.0-0.2.3) wrote a 77-byte labelled
-attachment, which `parse_attachment` still reads. It was checked against the examples of those
-sources and Python-to-Python only: it was NOT tested against a real ROS 2 install.
+`rmw_zenoh_cpp` directly, without a bridge.
+
+Supported: rmw_zenoh_cpp 0.2.4 and later as released for ROS 2 Jazzy (ros2-gbp/rmw_zenoh-release,
+tags release/jazzy/rmw_zenoh_cpp/0.2.4-1 to 0.2.10-1), and Humble's 0.1.x publishers (no type
+hash). Older Jazzy releases (0.2.0-0.2.3) wrote a 77-byte labelled attachment: `parse_attachment`
+still reads it, and `ros2_subscribe` names such a publisher's node once. Kilted (0.6.x) writes the
+same tokens as Jazzy; Rolling (0.12) adds an optional 14th token chunk, `backends:NAME:META;...`,
+for Buffer message types, which `parse_entity_token` reads (`EntityToken.backends`). Tested against
+an independent implementation (zenoh-ros2-sdk, tests/test_ros2_interop.py), not a ROS 2 install.
 """
 
 from __future__ import annotations
@@ -223,6 +227,8 @@ class EntityToken:
     typename: str = ""
     type_hash: str = ""
     qos: str = ""
+    backends: tuple[tuple[str, str], ...] = ()
+    """Rolling's optional 14th chunk (Buffer types): (backend, metadata) pairs, in the token's order"""
 
 
 def parse_entity_token(key: str) -> EntityToken:
@@ -245,16 +251,38 @@ def parse_entity_token(key: str) -> EntityToken:
         if rest:
             raise ValueError(f"node token with extra chunks: {key!r}")
         return node_entity
-    if len(rest) != 4:
-        raise ValueError(f"entity token needs topic, type, hash and QoS chunks: {key!r}")
-    topic, dds_type, hash_chunk, qos = rest
+    if len(rest) not in (4, 5):
+        raise ValueError(f"entity token needs topic, type, hash and QoS chunks (and optional backends): {key!r}")
+    topic, dds_type, hash_chunk, qos = rest[:4]
     return dataclasses.replace(
         node_entity,
         topic=demangle(topic),
         typename=ros_type_name(demangle(dds_type)),
         type_hash=demangle(hash_chunk),
         qos=qos,
+        backends=parse_backends(rest[4]) if len(rest) == 5 else (),
     )
+
+
+BACKENDS = "backends:"
+_ESCAPED = re.compile(r"%([0-9A-Fa-f]{2})")
+
+
+def parse_backends(chunk: str) -> tuple[tuple[str, str], ...]:
+    """Rolling's backends chunk, `backends:NAME:META;NAME:META`, each field with `%`, `;`, `:` and
+    `/` escaped as %XX; another optional chunk (a later release's) is ignored, as rmw_zenoh does."""
+    if not chunk.startswith(BACKENDS):
+        return ()
+    pairs = []
+    for entry in chunk[len(BACKENDS) :].split(";"):
+        if entry:
+            name, _, meta = entry.partition(":")
+            pairs.append((_unescape(name), _unescape(meta)))
+    return tuple(pairs)
+
+
+def _unescape(field: str) -> str:
+    return _ESCAPED.sub(lambda m: chr(int(m[1], 16)), field)
 
 
 def gid(token: str) -> bytes:
@@ -286,6 +314,11 @@ def _legacy(data: bytes) -> tuple[int, int, bytes]:
     if values[2][0] != GID_BYTES:
         raise ValueError(f"attachment GID of length {values[2][0]}, not {GID_BYTES}")
     return seq, stamp, bytes(values[2][1:])
+
+
+def is_legacy_attachment(data: bytes | bytearray | None) -> bool:
+    """Whether an attachment has the labelled form of rmw_zenoh_cpp 0.2.0-0.2.3."""
+    return data is not None and len(data) == LEGACY_ATTACHMENT_BYTES
 
 
 def parse_attachment(data: bytes | bytearray | None) -> tuple[int, int, bytes]:

@@ -264,7 +264,15 @@ class Ros2Subscribe(_Ros2Node, Source):
         self._ready = threading.Condition()
         self._overflow = 0
         self._warned: set[tuple[str, str]] = set()
+        self._publishers: dict[bytes, str] = {}
+        """GID -> the node (namespace/name) of each publisher seen in the graph"""
+        self._legacy: set[bytes] = set()
         self._open(params, self.topics)
+        self.graph = self.session.liveliness().declare_subscriber(
+            f"{rz.LIVELINESS_PREFIX}/{params.domain_id}/**",
+            zenoh.handlers.Callback(self._on_token, indirect=False),
+            history=True,
+        )
         self.subscribers = [
             self._subscribe(rz.topic_key(params.domain_id, spec.topic, spec.type, rz.ANY_HASH), port, spec)
             for port, spec in self.topics.items()
@@ -289,6 +297,18 @@ class Ros2Subscribe(_Ros2Node, Source):
         return zenoh.ext.declare_advanced_subscriber(
             self.session, key, handler, history=history, recovery=recovery, subscriber_detection=True
         )
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        """Note each publisher's node by its GID (the XXH3 of its token), to name it in warnings."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        try:
+            token = rz.parse_entity_token(str(sample.key_expr))
+        except ValueError:
+            return  # another kind of token, or one this reader does not know: nothing to name
+        if token.kind == rz.PUBLISHER:
+            node = f"{token.namespace.rstrip('/')}/{token.node}"
+            self._publishers[rz.gid(str(sample.key_expr))] = node
 
     def _receiver(self, port: str) -> Callable[[zenoh.Sample], None]:
         def receive(sample: zenoh.Sample) -> None:
@@ -320,11 +340,20 @@ class Ros2Subscribe(_Ros2Node, Source):
     def _decode(self, port: str, key_hash: str, payload: bytes, att: bytes | None) -> Emit | None:
         spec = self.topics[port]
         try:
-            _seq, source_ns, _gid = rz.parse_attachment(att)
+            _seq, source_ns, gid = rz.parse_attachment(att)
         except ValueError as exc:
             self.drop(NO_ATTACHMENT)
             log.debug("ros2_subscribe: %s: dropped a sample: %s", spec.topic, exc)
             return None
+        if rz.is_legacy_attachment(att) and gid not in self._legacy:
+            self._legacy.add(gid)
+            who = self._publishers.get(gid, f"of GID {gid.hex()} (its node not in the graph)")
+            log.warning(
+                "ros2_subscribe: %s: the publisher %s runs rmw_zenoh 0.2.0-0.2.3 (a labelled attachment): "
+                "supported are 0.2.4 and later; its samples are read",
+                spec.topic,
+                who,
+            )
         if key_hash not in (self._hashes[port], rz.HUMBLE_HASH) and (port, key_hash) not in self._warned:
             self._warned.add((port, key_hash))
             log.warning(
@@ -356,7 +385,7 @@ class Ros2Subscribe(_Ros2Node, Source):
                     yield emit
 
     def close(self, outcome: RunOutcome = COMPLETE) -> None:
-        self._close(list(self.subscribers))
+        self._close([self.graph, *self.subscribers])
 
 
 class Ros2Publish(_Ros2Node, Operator):

@@ -99,6 +99,18 @@ def test_tokens_parse_back():
             rz.parse_entity_token(bad)
 
 
+def test_rollings_optional_backends_chunk_is_read():
+    """rmw_zenoh_cpp 0.12 (Rolling) appends `backends:NAME:META;...` to the token of a Buffer type,
+    each field with `%`, `;`, `:` and `/` escaped as %XX; a 14th chunk of another kind is ignored."""
+    with_backends = f"{TALKER_MP}/backends:cuda:dev%3A0%2Fstream%253B;cpu:"
+    parsed = rz.parse_entity_token(with_backends)
+    assert parsed.backends == (("cuda", "dev:0/stream%3B"), ("cpu", ""))
+    assert parsed.topic == "/chatter" and parsed.qos == "::,7:,:,:,,"
+    assert rz.parse_entity_token(f"{TALKER_MP}/future:thing").backends == ()
+    with pytest.raises(ValueError, match="optional backends"):
+        rz.parse_entity_token(f"{TALKER_MP}/backends:cpu:/extra")
+
+
 @pytest.mark.parametrize(
     ("reliable", "depth", "transient_local", "expected"),
     [

@@ -138,6 +138,35 @@ def test_subscribe_takes_what_rmw_zenoh_publishes_and_drops_the_rest(router):
     assert op.drops == {NO_ATTACHMENT: 2, BAD_PAYLOAD: 1}
 
 
+def test_a_publisher_of_rmw_zenoh_0_2_3_is_named_once(router, caplog):
+    """Samples with the labelled attachment of rmw_zenoh 0.2.0-0.2.3 are read, and one warning
+    names their publisher's node, found in the graph by the GID (XXH3 of its token)."""
+    op = Ros2Subscribe(Ros2SubscribeParams(topics=IMU_TOPICS, router=router))
+    node = client(router)
+    entity = f"@ros2_lv/0/{'ab' * 16}/0/3/MP/%/%robot/old_driver"
+    mp_key = f"{entity}/%imu%data/sensor_msgs::msg::dds_::Imu_/{IMU_HASH}/::,10:,:,:,,"
+    gid = xxhash.xxh3_128_intdigest(mp_key.encode()).to_bytes(16, "little")
+    try:
+        token = node.liveliness().declare_token(mp_key)
+        old_pub = node.declare_publisher(IMU_KEY)
+        assert matched(old_pub)
+        t1 = 1_700_000_000_100_000_000
+        with caplog.at_level("WARNING", logger="rover"):
+            for i in range(3):
+                old_pub.put(jazzy_imu(t1 + i, 0.25), attachment=legacy_attachment(i + 1, t1 + i, gid))
+            got = collect(op, lambda got: len(got) == 3)
+        token.undeclare()
+    finally:
+        op.close()
+        node.close()
+    assert len(got) == 3 and not op.drops
+    named = [r.getMessage() for r in caplog.records if "0.2.0-0.2.3" in r.getMessage()]
+    assert named == [
+        "ros2_subscribe: /imu/data: the publisher /robot/old_driver runs rmw_zenoh 0.2.0-0.2.3 (a labelled "
+        "attachment): supported are 0.2.4 and later; its samples are read"
+    ]
+
+
 def test_a_full_queue_drops_the_oldest(router):
     op = Ros2Subscribe(Ros2SubscribeParams(topics=IMU_TOPICS, router=router, queue_size=2))
     node = client(router)
