@@ -38,8 +38,10 @@ def scenario_size(scenario: Scenario) -> ScenarioSize:
     lap = Motion(replace(trajectory, laps=2)).duration_s - one
     duration = one + (trajectory.laps - 1) * lap
     rx = scenario.receiver
-    windows = duration / rx.dwell_s
-    packets = duration * rx.packet_rate_hz * max(rx.dwell_s - rx.hop_gap_s, 0.0) / rx.dwell_s
+    # the sweep's windows cover whole dwells (rover.datasets.simulate._windows): with a dwell longer
+    # than the run, its one window (and its packets) outlasts the run by that much
+    windows = math.floor(duration / rx.dwell_s) + 1.0 if math.isfinite(duration / rx.dwell_s) else math.inf
+    packets = windows * rx.packet_rate_hz * max(rx.dwell_s - rx.hop_gap_s, 0.0)
     per_s = scenario.imu.rate_hz + TRUTH_RATE_HZ + (scenario.odometry.rate_hz if scenario.odometry.enabled else 0.0)
     messages = duration * per_s + windows + 2 * packets
     return ScenarioSize(duration, int(min(messages, 2**62)) if math.isfinite(messages) else 2**62)
@@ -51,6 +53,7 @@ def check_size(scenario: Scenario, where: str) -> ScenarioSize:
     if size.messages > MAX_MESSAGES:
         raise ScenarioTooBig(
             f"{where}: the scenario would simulate {size.duration_s:,.0f} s as {size.messages:,} messages; "
-            f"at most {MAX_MESSAGES:,} (about 3.5 GB of memory): fewer laps, or lower rates"
+            f"at most {MAX_MESSAGES:,} (about 3.5 GB of memory): fewer laps, lower rates, or a receiver.dwell_s "
+            "shorter than the run"
         )
     return size

@@ -232,7 +232,14 @@ def test_the_size_worked_out_before_simulating_bounds_the_size_simulated(short_r
 
 @pytest.mark.parametrize(
     "setting",
-    ["trajectory.laps=100000", "trajectory.laps=1000000000000", "receiver.dwell_s=0.0000001", "imu.rate_hz=20000000"],
+    [
+        "trajectory.laps=100000",
+        "trajectory.laps=1000000000000",
+        "receiver.dwell_s=0.0000001",
+        "receiver.dwell_s=1e-300",
+        "receiver.dwell_s=1e9",  # one window of a billion seconds: its packets outlast the run
+        "imu.rate_hz=20000000",
+    ],
 )
 def test_a_scenario_too_big_for_memory_is_refused_before_anything_is_allocated(tmp_path, capsys, setting):
     from rover.cli.app import main
