@@ -155,17 +155,23 @@ def table_rows(work: Path, dataset: Path) -> list[Row]:
 
 
 def stop_time(work: Path, dataset: Path) -> dict[str, float | int | bool]:
-    """Seconds from SIGINT to exit, on a run with ground truth that is well under way."""
+    """Seconds from SIGINT to exit, on a run with ground truth that is well under way: replayed at
+    real time, stopped at its first progress line (10 s in), every worker process with it."""
     out = work / "stopped"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "rover.cli", "run", "--dataset", str(dataset), "--output", str(out)],
-        stderr=subprocess.DEVNULL,
+        [sys.executable, "-m", "rover.cli", "run", "--dataset", str(dataset), "--output", str(out), "--speed", "1"],
+        stderr=subprocess.PIPE,
+        text=True,
     )
-    partial = out / ".results.mcap.partial"
-    while proc.poll() is None and not (partial.exists() and partial.stat().st_size > 100_000):
-        time.sleep(0.01)
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if line.startswith("progress:"):
+            break
+    else:
+        raise SystemExit(f"the run ended (status {proc.wait()}) before its first progress line")
     sent = time.monotonic()
     proc.send_signal(signal.SIGINT)
+    proc.stderr.read()
     status = proc.wait()
     took = time.monotonic() - sent
     run = json.loads((out / "run.json").read_text())
