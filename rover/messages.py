@@ -99,11 +99,18 @@ def _zero(kind: int, spec: Any) -> Any:
     return np.zeros(0, dtype=_NUMPY_DTYPES[item_spec[0]]) if numeric else []
 
 
+DEFAULTS: dict[str, dict[str, Any]] = {"geometry_msgs/msg/Quaternion": {"w": 1.0}}
+"""The non-zero defaults of the standard interfaces' .msg files, which rosbags' definitions leave
+out: a ROS 2 node's unset quaternion is the identity, not zero (common_interfaces' Quaternion.msg)."""
+
+
 def make(typename: str, **fields: Any) -> Any:
-    """A message of `typename` with the given fields and every other field zero, empty or default."""
+    """A message of `typename` with the given fields and every other field zero, empty or its
+    .msg default (`DEFAULTS`)."""
     if typename not in typestore.fielddefs:
         raise BadInput(f"unknown message type {typename!r}")
     _consts, defs = typestore.fielddefs[typename]
+    fields = {**DEFAULTS.get(typename, {}), **fields}
     values = {name: fields.pop(name) if name in fields else _zero(kind, spec) for name, (kind, spec) in defs}
     if fields:
         raise TypeError(f"{typename} has no field(s) {', '.join(fields)}")

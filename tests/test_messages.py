@@ -58,3 +58,11 @@ def test_make_fills_defaults_and_rejects_unknown_fields():
         make("sensor_msgs/msg/Imu", nonsense=1)
     with pytest.raises(BadInput):
         make("nope_msgs/msg/Nope")
+
+
+def test_make_takes_the_msg_files_defaults():
+    """An unset quaternion is the identity, as a ROS 2 node's (`float64 w 1` in Quaternion.msg),
+    nested ones too; a value given wins."""
+    assert make("nav_msgs/msg/Odometry").pose.pose.orientation.w == 1.0
+    assert make("geometry_msgs/msg/Quaternion", w=0.5).w == 0.5
+    assert make("sensor_msgs/msg/Imu").orientation.w == 1.0

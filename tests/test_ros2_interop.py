@@ -109,8 +109,7 @@ def endpoint(port: int) -> str:
 
 
 def imu_msg(i: int) -> Any:
-    msg = make(IMU, header=header(STAMP_NS + i, "imu_link"))
-    msg.orientation.w = 1.0
+    msg = make(IMU, header=header(STAMP_NS + i, "imu_link"))  # orientation left unset: the identity
     msg.angular_velocity.z = 0.25 * i
     msg.linear_acceleration.z = 9.81
     return msg
