@@ -117,6 +117,24 @@ def test_ground_truth_never_reaches_the_estimate(lap_runs):
     assert not (blind / "metrics.json").exists()
 
 
+def test_eval_against_another_runs_truth_warns_and_says_so(lap_runs, tmp_path):
+    """`rover eval RUN --truth OTHER.tum` with a truth that is not the ground truth of the run's
+    dataset (here the run's own estimate moved 1 m): exit 0, a warning naming both, and metrics.json
+    (`--json`) noting it; with the run's own truth, no note."""
+    run = lap_runs["with"].output
+    rows = np.loadtxt(run / "trajectory.tum")
+    rows[:, 1] += 1.0
+    other = tmp_path / "other.tum"
+    np.savetxt(other, rows, fmt="%.9f")
+    proc = run_rover("eval", str(run), "--truth", str(other), "--json")
+    assert proc.returncode == 0, proc.stderr
+    note = f"the truth {other} is not the ground truth of the run's dataset {lap_runs['with'].dataset.resolve()}"
+    assert f"rover: WARNING: {run}: {note}" in proc.stderr.splitlines(), proc.stderr
+    assert note in json.loads(proc.stdout)["notes"]
+    own = run_rover("eval", str(run), "--json", check=True)
+    assert "notes" not in json.loads(own.stdout), own.stdout
+
+
 def test_an_empty_dataset_is_a_clean_run_with_empty_outputs(tmp_path, simulated):
     """A dataset with the rig description and not one message: status 0, one warning, every
     estimate file present and empty, run.json counting nothing."""

@@ -197,6 +197,24 @@ def test_render_shows_operators_and_hosts_not_answering():
     assert "note: a note" in text
 
 
+def test_a_table_written_to_a_pipe_is_never_cut_to_the_terminals_width():
+    """`rover status --once | less`: every column whole (rich would cut a pipe's table to 80 columns)."""
+    from io import StringIO
+
+    from rover.cli.status import show
+
+    long_name = "preintegration_of_the_second_imu_on_the_left_wheel"
+    a = replace(
+        snapshot(0, "a_host_with_a_long_name"),
+        operators=[OperatorStatus(long_name, "preintegration", {}, {}, {}, 0, 0, None, None, "")],
+    )
+    piped = StringIO()
+    show(render({"a_host_with_a_long_name": a}, {}, ["a_host_with_a_long_name", "nuc"]), file=piped)
+    text = piped.getvalue()
+    assert long_name in text and "a_host_with_a_long_name" in text and "…" not in text, text
+    assert max(len(line) for line in text.splitlines()) > 80
+
+
 def test_render_without_previous_snapshot_shows_no_rate():
     rows = [line.split() for line in _text(render({"a": snapshot(0)}, {}, ["a"])).splitlines()]
     assert ["a", "heading", "imu", "-", "pose", "-", "3/17", "0.250", "s", "imu", "2"] in rows
