@@ -141,7 +141,7 @@ def _run_in_workers(args: argparse.Namespace, pipeline: Pipeline, count: int) ->
         same = _same_command_line(args)
 
         def command(k: int, ready_fd: int) -> list[str]:
-            quiet = ["-q"] if args.quiet or k > 0 else []
+            quiet = ["-q"] if args.quiet else []
             return [
                 sys.executable,
                 "-m",
@@ -189,4 +189,5 @@ def _run_worker(args: argparse.Namespace, pipeline: Pipeline) -> int:
             os.write(fd, supervisor.RUNNING)
 
     host = workers.WorkerPlan.host(args.worker_index)
-    return runner.run(workers.as_workers(pipeline, plan), host, progress=not args.quiet, on_running=running)
+    progress = not args.quiet and args.worker_index == 0  # worker 0 has the sources: it shows the progress
+    return runner.run(workers.as_workers(pipeline, plan), host, progress=progress, on_running=running)

@@ -7,6 +7,7 @@ import math
 from typing import Any
 
 import numpy as np
+import pytest
 from slam_scenes import EXACT_COVARIANCE, angles, edge, scene, true_angle
 from test_jumps import burst_candidates
 
@@ -93,6 +94,25 @@ def test_outputs_per_epoch_and_tags_localized():
     assert len(timing) == len(by_port["diagnostics"]) and all(t.stage == "slam.update" and t.wall_s > 0 for t in timing)
     path = by_port["path"][-1].msg
     assert len(path.poses) == n
+
+
+def test_each_pose_goes_out_with_its_covariance():
+    """pose_covariance: the pose as sent; x and y's covariance symmetric, positive definite, and
+    growing from the first pose (the world frame is that pose's) as the robot leaves it; yaw's the
+    running sum of the odometry's rotation variance (1e-10 per increment here); z, roll and pitch 0."""
+    sc = scene(seconds=12.0)
+    out = feed(Slam(SlamParams(window=20, aoa_std_scale=1.0)), sc, angles(sc))
+    poses = [e.msg for e in out if e.port == "pose"]
+    with_cov = [e.msg for e in out if e.port == "pose_covariance"]
+    assert len(with_cov) == len(poses) == len(sc.t) - 1
+    for k, (pose, msg) in enumerate(zip(poses, with_cov, strict=True), start=1):
+        assert msg.header == pose.header and msg.pose.pose == pose.pose
+        cov = np.asarray(msg.pose.covariance).reshape(6, 6)
+        assert np.all(np.linalg.eigvalsh(cov[:2, :2]) > 0) and cov[0, 1] == cov[1, 0]
+        assert cov[5, 5] == pytest.approx(1e-10 * k, rel=1e-9)
+        assert not cov[2:5].any() and not cov[:, 2:5].any()
+    first, last = (np.asarray(m.pose.covariance).reshape(6, 6)[:2, :2] for m in (with_cov[0], with_cov[-1]))
+    assert np.trace(last) > np.trace(first)
 
 
 def test_a_tag_seen_over_too_little_parallax_is_not_published_localized(caplog):

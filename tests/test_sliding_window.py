@@ -329,3 +329,23 @@ def test_searches_go_a_few_steps_at_a_time_the_longest_waiting_first():
     assert w.active == whole.active and [i for i, _ in w.finder.found] == [i for i, _ in whole.finder.found]
     for (_, a), (_, b) in zip(w.finder.found, whole.finder.found, strict=True):
         np.testing.assert_array_equal(a.position, b.position)
+
+
+def test_the_covariances_are_the_blocks_of_the_informations_inverse():
+    """Tags, shared states and the newest epoch's position (the pose's covariance) from one solve:
+    each the matching block of the inverse of a dense information matrix."""
+    from rover.operators.slam.information import covariances
+    from rover.operators.slam.layout import Shape
+
+    shape = Shape(epochs=5, slots=2, tags=3, biases=2)
+    rng = np.random.default_rng(3)
+    root = rng.normal(size=(shape.states, shape.states))
+    info = root @ root.T + shape.states * np.eye(shape.states)
+    inverse = np.linalg.inv(info)
+    tags, shared, newest = covariances(info, shape)
+    for t in range(shape.tags):
+        block = shape.tag(t)
+        np.testing.assert_allclose(tags[t], inverse[block, block], rtol=1e-10)
+    np.testing.assert_allclose(shared, inverse[shape.shared_states, shape.shared_states], rtol=1e-10)
+    last = shape.position(shape.epochs - 1)
+    np.testing.assert_allclose(newest, inverse[last, last], rtol=1e-10)

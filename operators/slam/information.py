@@ -48,19 +48,22 @@ def window_information(
     return info + rows.T @ rows
 
 
-def covariances(info: np.ndarray, shape: Shape) -> tuple[np.ndarray, np.ndarray]:
-    """From the window's information: each tag's 2x2 covariance (tags, 2, 2) and the shared states'
-    (infinite where the information is singular)."""
+def covariances(info: np.ndarray, shape: Shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """From the window's information: each tag's 2x2 covariance (tags, 2, 2), the shared states', and
+    the newest epoch's position's 2x2 (infinite where the information is singular). One solve."""
     nt, nb = shape.tags, shape.biases
     e = shape.tag_states.start
-    rhs = np.zeros((info.shape[0], 2 * nt + nb))
-    rhs[e:, :] = np.eye(2 * nt + nb)
+    newest = shape.position(shape.epochs - 1)
+    rhs = np.zeros((info.shape[0], 2 * nt + nb + 2))
+    rhs[e:, : 2 * nt + nb] = np.eye(2 * nt + nb)
+    rhs[newest, 2 * nt + nb :] = np.eye(2)
     try:
-        cov = np.linalg.solve(info, rhs)[e:]
+        solved = np.linalg.solve(info, rhs)
     except np.linalg.LinAlgError:
-        cov = np.full((2 * nt + nb, 2 * nt + nb), np.inf)
+        solved = np.full(rhs.shape, np.inf)
+    cov = solved[e:, : 2 * nt + nb]
     tags = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
-    return tags, cov[2 * nt :, 2 * nt :]
+    return tags, cov[2 * nt :, 2 * nt :], solved[newest, 2 * nt + nb :]
 
 
 def largest_std_m(tag_covariance: np.ndarray) -> np.ndarray:

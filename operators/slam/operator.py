@@ -30,6 +30,8 @@ log = logging.getLogger("rover.slam")
 
 PREINTEGRATION_XY = [3, 4, 6, 7]
 """velocity x/y and position x/y in the Preintegration covariance's [rotation, velocity, position]"""
+YAW_VARIANCE = 2 * 9 + 2
+"""the rotation about z's variance in the Preintegration covariance (row-major 9x9)"""
 DELTA_XY = [0, 1, 3, 4]
 """velocity x/y and position x/y in its accel_bias_jacobian's rows [velocity, position]"""
 COVARIANCE_FLOOR = 1e-12
@@ -122,6 +124,11 @@ class Slam(Operator):
     }
     outputs = {
         "pose": Out("geometry_msgs/msg/PoseStamped", doc="the newest epoch's pose, as estimated at its own time"),
+        "pose_covariance": Out(
+            "geometry_msgs/msg/PoseWithCovarianceStamped",
+            doc="the same pose with its covariance: x and y from the window; yaw from the gyro integration the "
+            "odometry states (the window has no yaw state); z, roll and pitch left at 0 (a planar estimate)",
+        ),
         "trajectory": Out("geometry_msgs/msg/PoseStamped", doc="each epoch's final pose, when it leaves the window"),
         "path": Out(
             "nav_msgs/msg/Path",
@@ -162,6 +169,8 @@ class Slam(Operator):
         self.failures = 0
         self.unchained = 0
         self.found_sent = 0
+        self.yaw_variance = 0.0
+        """the heading's variance (rad^2) since the first epoch, summed from the odometry increments"""
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "aoa":
@@ -229,6 +238,7 @@ class Slam(Operator):
         if msg.dt <= 0 or not np.isfinite(np.asarray(msg.covariance)).all():
             self.drop("odometry increments with no duration or a non-finite covariance")
             return
+        self.yaw_variance += float(msg.covariance[YAW_VARIANCE])
         w.add_epoch(
             stamp,
             yaw_of(msg.orientation),
@@ -273,7 +283,14 @@ class Slam(Operator):
             log.debug("%s at %.3f s", result.failed, stamp / 1e9)
         newest = w.epochs[-1]
         x, y = w.x[w.shape.position(len(w.epochs) - 1)]
-        yield Emit("pose", pose_message(newest.stamp_ns, float(x), float(y), newest.yaw), stamp)
+        pose = pose_message(newest.stamp_ns, float(x), float(y), newest.yaw)
+        yield Emit("pose", pose, stamp)
+        covariance = np.zeros((6, 6))
+        covariance[:2, :2] = 0.5 * (w.position_covariance + w.position_covariance.T)
+        covariance[5, 5] = self.yaw_variance
+        with_covariance = make("geometry_msgs/msg/PoseWithCovarianceStamped", header=pose.header)
+        with_covariance.pose.pose, with_covariance.pose.covariance = pose.pose, covariance.ravel()
+        yield Emit("pose_covariance", with_covariance, stamp)
         yield Emit("tags", self._tags(stamp), stamp)
         yield Emit(
             "diagnostics",

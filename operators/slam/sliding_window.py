@@ -109,6 +109,8 @@ class SlidingWindow:
     tag_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     bias_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     """of the shared states (the accelerometer biases, then the wheel scale), at the last update"""
+    position_covariance: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.inf))
+    """the newest epoch's position's 2x2 covariance at the last update (m^2)"""
     disagreement: dict[int, int] = field(default_factory=dict)
     """per tag slot: consecutive updates in which most of its bearings were Huber-active"""
     resets: int = 0
@@ -555,7 +557,7 @@ class SlidingWindow:
         w = np.where(filled, huber_weight(residual, s.huber_sigma), 0.0)
         coeff = self._slot_coefficients(jb, tag) * np.sqrt(w)[:, None]
         info = window_information(self.shape, self._prior.info, self.edges, self.epochs, epoch, coeff)
-        self.tag_covariance, self.bias_covariance = covariances(info, self.shape)
+        self.tag_covariance, self.bias_covariance, self.position_covariance = covariances(info, self.shape)
         xy = positions(self.x, len(self.epochs))
         for t, cov in enumerate(self.tag_covariance):
             if self.active[t]:
