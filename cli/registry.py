@@ -21,5 +21,6 @@ BUILTINS: dict[str, str] = {
     "foxglove_view": "rover.drivers.foxglove_view:FoxgloveView",
     "ros2_subscribe": "rover.drivers.ros2:Ros2Subscribe",
     "ros2_publish": "rover.drivers.ros2:Ros2Publish",
+    "ros_outputs": "rover.drivers.ros_outputs:RosOutputs",
 }
 """Short name -> `module:Class`; modules are imported only when a pipeline uses them."""

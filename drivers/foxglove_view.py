@@ -46,7 +46,7 @@ from foxglove.messages import (
 )
 
 from rover.errors import BadInput
-from rover.geometry import yaw_from_quaternion
+from rover.geometry import ellipses, yaw_from_quaternion
 from rover.messages import stamp_ns
 from rover.operator import COMPLETE, In, Operator, RunOutcome
 from rover.pipeline.params import Checked, PositiveFloat, Range
@@ -98,16 +98,6 @@ class FoxgloveViewParams(Checked):
 
 def timestamp(ns: int) -> Timestamp:
     return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
-
-
-def ellipses(centers: np.ndarray, covariances: np.ndarray, sigma: float) -> np.ndarray:
-    """Points (n, ELLIPSE_POINTS, 2) of the `sigma` ellipses of n 2x2 covariances: the unit circle
-    scaled by the square roots of the eigenvalues and turned onto the eigenvectors."""
-    values, vectors = np.linalg.eigh(0.5 * (covariances + np.swapaxes(covariances, 1, 2)))
-    t = np.linspace(0.0, 2 * math.pi, ELLIPSE_POINTS, endpoint=False)
-    circle = np.stack([np.cos(t), np.sin(t)])  # (2, m)
-    axes = vectors * (sigma * np.sqrt(np.maximum(values, 0.0)))[:, None, :]  # columns scaled
-    return centers[:, None, :] + np.swapaxes(axes @ circle, 1, 2)
 
 
 def _points(xy: np.ndarray) -> list[Point3]:
@@ -203,7 +193,7 @@ class FoxgloveView(Operator):
         covariances = np.array([np.asarray(t.covariance_xy, float).reshape(2, 2) for t in tags])
         finite = np.isfinite(covariances).all(axis=(1, 2))
         covariances[~finite] = 0.0
-        offsets = ellipses(np.zeros_like(centers), covariances, self.params.ellipse_sigma)
+        offsets = ellipses(np.zeros_like(centers), covariances, self.params.ellipse_sigma, ELLIPSE_POINTS)
         drawn = finite & (np.abs(offsets).max(axis=(1, 2)) <= ELLIPSE_MAX_AXIS_M)
         loops = offsets + centers[:, None, :]
         entities = []

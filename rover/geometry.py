@@ -103,3 +103,14 @@ def parallax_deg(position: np.ndarray, seen_from: np.ndarray) -> float:
     0 without any."""
     seen = position[None, :] - seen_from
     return math.degrees(smallest_arc(np.arctan2(seen[:, 1], seen[:, 0]))) if len(seen) else 0.0
+
+
+def ellipses(centers: np.ndarray, covariances: np.ndarray, sigma: float, points: int) -> np.ndarray:
+    """Points (n, points, 2) of the `sigma` ellipses of n 2x2 covariances around `centers` (n, 2): the
+    unit circle scaled by the square roots of the eigenvalues and turned onto the eigenvectors."""
+    values, vectors = np.linalg.eigh(0.5 * (covariances + np.swapaxes(covariances, 1, 2)))
+    t = np.linspace(0.0, 2 * math.pi, points, endpoint=False)
+    circle = np.stack([np.cos(t), np.sin(t)])  # (2, points)
+    axes = vectors * (sigma * np.sqrt(np.maximum(values, 0.0)))[:, None, :]  # columns scaled
+    loops: np.ndarray = centers[:, None, :] + np.swapaxes(axes @ circle, 1, 2)
+    return loops

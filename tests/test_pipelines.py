@@ -15,15 +15,37 @@ from rover.pipeline.validation import load_and_check
 PIPELINES = sorted((Path(__file__).resolve().parent.parent / "pipelines").glob("*.yaml"))
 
 
+HOSTS = {"live.yaml": ["base", "laptop", "nuc"], "ros2.yaml": []}
+"""the hosts each shipped pipeline places its operators on ([]: one machine, the one with the NIC)"""
+
+
 def test_there_are_shipped_pipelines():
-    assert [p.name for p in PIPELINES] == ["live.yaml"]
+    assert [p.name for p in PIPELINES] == sorted(HOSTS)
 
 
 @pytest.mark.parametrize("path", PIPELINES, ids=lambda p: p.name)
 def test_a_shipped_pipeline_checks_and_draws(path):
     pipeline = load_and_check(path, BUILTINS)
-    assert pipeline.hosts_in_use() == ["base", "laptop", "nuc"]
-    assert "subgraph" in graph.mermaid(pipeline)
+    assert pipeline.hosts_in_use() == HOSTS[path.name]
+    drawn = graph.mermaid(pipeline)
+    assert drawn.startswith("flowchart") and ("subgraph" in drawn) == bool(HOSTS[path.name])
+
+
+def test_the_ros2_pipeline_takes_the_robots_topics_and_gives_back_what_ros_tools_read():
+    """pipelines/ros2.yaml: the IMU and odometry from the robot's graph, the NIC's CSI, and /tf,
+    /tf_static (latched), the pose with covariance, the tags' markers and the path published."""
+    pipeline = load_and_check(PIPELINES[-1], BUILTINS)
+    robot, publish = pipeline.nodes["robot"], pipeline.nodes["publish"]
+    assert {p: o.type for p, o in robot.ports.outputs.items()} == {
+        "imu": "sensor_msgs/msg/Imu",
+        "odom": "nav_msgs/msg/Odometry",
+    }
+    topics = {entry["topic"]: entry for entry in publish.spec.params["topics"].values()}
+    assert sorted(topics) == ["/rover/path", "/rover/pose", "/rover/tags", "/tf", "/tf_static"]
+    assert topics["/tf_static"]["durability"] == "transient_local"
+    assert topics["/rover/pose"]["type"] == "geometry_msgs/msg/PoseWithCovarianceStamped"
+    assert pipeline.nodes["preint"].spec.inputs["imu"].text == "robot/imu"
+    assert pipeline.nodes["slam"].spec.inputs["wheel"].text == "robot/odom"
 
 
 def test_the_live_pipeline_reads_the_papers_devices_on_their_hosts():
