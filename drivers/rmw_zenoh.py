@@ -43,6 +43,7 @@ DEFAULT_DEPTH = 42
 """the history depth rmw_zenoh leaves out of a QoS string (src/detail/qos.cpp)"""
 RELIABILITY_BEST_EFFORT = 2
 DURABILITY_TRANSIENT_LOCAL = 1
+HISTORY_KEEP_ALL = 2
 GID_BYTES = 16
 
 _ATTACHMENT = struct.Struct("<qqB16s")
@@ -168,16 +169,18 @@ def demangle(chunk: str) -> str:
     return chunk.replace("%", "/")
 
 
-def qos_string(reliable: bool, depth: int, transient_local: bool = False) -> str:
-    """The QoS chunk of a token for a KEEP_LAST(depth) endpoint with automatic liveliness and no
-    deadline, lifespan or lease, in rmw_zenoh's compact form (0.2.3 and later): each field is
-    left empty when it equals rmw_zenoh's default (reliable, volatile, keep last, depth 42)."""
+def qos_string(reliable: bool, depth: int, transient_local: bool = False, keep_all: bool = False) -> str:
+    """The QoS chunk of a token for a KEEP_LAST(depth) (or KEEP_ALL) endpoint with automatic
+    liveliness and no deadline, lifespan or lease, in rmw_zenoh's compact form (0.2.3 and later):
+    each field is left empty when it equals rmw_zenoh's default (reliable, volatile, keep last,
+    depth 42)."""
     if depth < 1:
         raise ValueError(f"QoS depth must be >= 1, got {depth}")
     rel = "" if reliable else str(RELIABILITY_BEST_EFFORT)
     dur = str(DURABILITY_TRANSIENT_LOCAL) if transient_local else ""
+    hist = str(HISTORY_KEEP_ALL) if keep_all else ""
     dep = "" if depth == DEFAULT_DEPTH else str(depth)
-    return f"{rel}:{dur}:,{dep}:,:,:,,"
+    return f"{rel}:{dur}:{hist},{dep}:,:,:,,"
 
 
 def node_token(domain_id: int, zid: str, nid: int, enclave: str, namespace: str, node: str) -> str:

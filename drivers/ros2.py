@@ -58,8 +58,9 @@ ENCLAVE = "/"
 """the default ROS security enclave (tokens carry it; Rover does not use SROS2)"""
 NODE_ENTITY_ID = 0
 """the node's id in its tokens; its publishers or subscriptions are numbered from 1"""
-TOPIC_KEYS = ("topic", "type", "depth", "reliable", "durability")
+TOPIC_KEYS = ("topic", "type", "depth", "reliable", "durability", "history")
 DURABILITIES = ("volatile", "transient_local")
+HISTORIES = ("keep_last", "keep_all")
 HEARTBEAT_S = 0.5
 """A reliable transient-local publisher's sporadic heartbeat (rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD)"""
 DEFAULT_DEPTH = 10
@@ -81,10 +82,13 @@ class TopicSpec:
     transient_local: bool = False
     """a publisher keeps its last `depth` samples for subscriptions that join later (latched:
     `/tf_static`, a map); a subscription asks the publishers it finds for theirs"""
+    keep_all: bool = False
+    """a reliable publisher waits for a slow subscriber instead of dropping (rmw_zenoh: KEEP_ALL and
+    RELIABLE put with congestion control BLOCK): nothing is lost, and the pipeline is held back"""
 
     @property
     def qos(self) -> str:
-        return rz.qos_string(self.reliable, self.depth, self.transient_local)
+        return rz.qos_string(self.reliable, self.depth, self.transient_local, self.keep_all)
 
 
 RouterEndpoint = Annotated[str, Matches(r"[a-z0-9-]+/\S+", "a Zenoh endpoint like tcp/127.0.0.1:7447")]
@@ -97,8 +101,8 @@ class Ros2Params(Checked):
     """What both directions share: the topics (one port each) and where the ROS graph is."""
 
     topics: dict[str, dict[str, Any]]
-    """port -> {topic, type, depth (10), reliable (true), durability (volatile, or transient_local)};
-    a relative topic is resolved in `namespace`"""
+    """port -> {topic, type, depth (10), reliable (true), durability (volatile, or transient_local),
+    history (keep_last, or keep_all)}; a relative topic is resolved in `namespace`"""
     router: RouterEndpoint = "tcp/127.0.0.1:7447"
     """the ROS 2 Zenoh router (`ros2 run rmw_zenoh_cpp rmw_zenohd`), connected to as a client"""
     domain_id: NonNegativeInt = 0
@@ -153,7 +157,12 @@ def parse_topics(topics: Mapping[str, Any] | None, namespace: str = "/") -> dict
         durability = entry.get("durability", DURABILITIES[0])
         if durability not in DURABILITIES:
             raise ValueError(f"{where}: 'durability' must be {' or '.join(DURABILITIES)}, got {durability!r}")
-        specs[port] = TopicSpec(topic, typename, depth, reliable, durability == "transient_local")
+        history = entry.get("history", HISTORIES[0])
+        if history not in HISTORIES:
+            raise ValueError(f"{where}: 'history' must be {' or '.join(HISTORIES)}, got {history!r}")
+        specs[port] = TopicSpec(
+            topic, typename, depth, reliable, durability == "transient_local", history == "keep_all"
+        )
     return specs
 
 
@@ -425,7 +434,8 @@ class Ros2Publish(_Ros2Node, Operator):
         cache of `depth` samples and can be detected by late subscriptions; a reliable one of those
         also sends sporadic heartbeats so they recover a missed last sample."""
         reliability = zenoh.Reliability.RELIABLE if spec.reliable else zenoh.Reliability.BEST_EFFORT
-        congestion = zenoh.CongestionControl.DROP
+        block = spec.reliable and spec.keep_all
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         if not spec.transient_local:
             return self.session.declare_publisher(key, reliability=reliability, congestion_control=congestion)
         miss = zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=HEARTBEAT_S) if spec.reliable else None

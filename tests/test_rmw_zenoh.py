@@ -168,3 +168,8 @@ def test_both_attachment_forms_parse():
 def test_other_attachments_are_rejected(data):
     with pytest.raises(ValueError):
         rz.parse_attachment(data)
+
+
+def test_a_keep_all_qos_string_carries_the_history_kind():
+    """rmw_zenoh writes KEEP_ALL's policy number (2) before the depth's comma."""
+    assert rz.qos_string(True, 10, keep_all=True) == "::2,10:,:,:,,"

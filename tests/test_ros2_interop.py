@@ -8,7 +8,10 @@ ways. No network: the SDK reads the message definitions vendored in tests/ros2_i
 
 from __future__ import annotations
 
+import bisect
+import csv
 import json
+import math
 import os
 import select
 import subprocess
@@ -18,13 +21,15 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
+import yaml
 import zenoh
-from helpers import ROOT, free_port
+from helpers import LAP, ROOT, free_port, read_bag, run_rover
 
 from rover.drivers.rmw_zenoh import LIVELINESS_PREFIX, parse_entity_token, qos_string, type_hash
 from rover.drivers.ros2 import Ros2Params, Ros2Publish, Ros2Subscribe, Ros2SubscribeParams
-from rover.messages import header, make
+from rover.messages import deserialize, header, make, stamp_ns
 from rover.operator import Emit
 
 HERE = ROOT / "tests" / "ros2_interop"
@@ -35,6 +40,8 @@ WAIT_S = 15.0
 FIRST_WAIT_S = 0.2
 """How long the first message is waited for before it is sent again (its route may be on its way)."""
 POLL_S = 0.005
+REPLAY_SPEED = 4.0
+"""times real time: a live robot's pace, four times over"""
 STAMP_NS = 1_700_000_000_123_456_789
 IMU = "sensor_msgs/msg/Imu"
 STRING = "std_msgs/msg/String"
@@ -85,12 +92,14 @@ class Process:
         self.proc.stdin.flush()
 
     def close(self) -> str:
-        """Close its stdin (communicate does), wait for it; its stderr."""
+        """Close its stdin (communicate does), wait for it; its stderr (what it printed on stdout
+        since the last `line` joins `lines`)."""
         try:
-            _out, err = self.proc.communicate(timeout=WAIT_S)
+            out, err = self.proc.communicate(timeout=WAIT_S)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            _out, err = self.proc.communicate()
+            out, err = self.proc.communicate()
+        self.lines += out.splitlines()
         return err
 
 
@@ -341,3 +350,131 @@ def test_a_late_rover_subscription_gets_an_independent_publishers_latched_sample
         err = sdk.close()
     assert "Error" not in err, err
     assert [e.msg.data for e in got] == ["map 1", "map 2"] and not sub.op.drops
+
+
+# -- pipelines/ros2.yaml end to end
+
+
+def replayed(ros2_yaml: Path, dataset: Path, router_port: int, out: Path, target: Path) -> Path:
+    """pipelines/ros2.yaml with its live sources (the NIC, its channel hops, the rig file and the robot's
+    topics) replaced by a replay of `dataset`: everything from the sweep on, and what goes back to the
+    ROS 2 graph, exactly as shipped."""
+    doc = yaml.safe_load(ros2_yaml.read_text())
+    ops = doc["operators"]
+    for live in ("rig", "hop", "csi", "robot"):
+        del ops[live]
+    ops = {"replay": {"uses": "dataset_replay", "params": {"path": str(dataset), "speed": REPLAY_SPEED}}, **ops}
+    renamed = {"csi/csi": "replay/csi", "rig/setup": "replay/setup", "robot/imu": "replay/imu",
+               "robot/odom": "replay/odom"}  # fmt: skip
+    for op in ops.values():
+        op["inputs"] = {port: renamed.get(wire, wire) for port, wire in op.get("inputs", {}).items()}
+    del ops["sweep"]["inputs"]["hops"]
+    ops["sweep"]["params"]["mode"] = "label"  # a recording's frames are labelled, not hopped
+    for topic in ops["publish"]["params"]["topics"].values():
+        topic["history"] = "keep_all"  # a replay loses nothing: a slow subscriber holds it back
+    # the tags as the SLAM sent them, to hold each marker array against
+    ops["record"] = {"uses": "recorder", "inputs": {"tags": "slam/tags"}, "params": {"out": "${output}"}}
+    doc["operators"] = ops
+    doc["vars"] |= {"router": endpoint(router_port), "output": str(out)}
+    target.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return target
+
+
+def stamp_of(msg: dict[str, Any]) -> int:
+    return msg["header"]["stamp"]["sec"] * 10**9 + msg["header"]["stamp"]["nanosec"]
+
+
+def plane(p: dict[str, Any], q: dict[str, Any]) -> tuple[float, float, float]:
+    """(x, y, yaw) of a position (or translation) and a quaternion."""
+    return p["x"], p["y"], math.atan2(2 * (q["w"] * q["z"] + q["x"] * q["y"]), 1 - 2 * (q["y"] ** 2 + q["z"] ** 2))
+
+
+@pytest.mark.slow
+def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router, simulated, tmp_path):
+    """pipelines/ros2.yaml on a replayed lap, over two workers, watched by the independent client:
+    each /rover/pose it receives is the run's live pose at that stamp (trajectory_live.tum) with a
+    positive-definite covariance; each /tf map -> odom composed with the dataset's odometry at that
+    stamp is the pose; each /rover/tags marker array puts every localized tag where the SLAM's tags
+    of that stamp do (recorded beside); the last of the run is tags.csv's.
+
+    The client does not receive every message: 55-70% of them at 4x real time (Rover's own
+    subscription on the same router receives all); so each is checked, and at least a quarter."""
+    dataset = simulated(*LAP)
+    out = tmp_path / "out"
+    pipeline = replayed(ROOT / "pipelines" / "ros2.yaml", dataset, router, out, tmp_path / "ros2-replay.yaml")
+    watched = {"/rover/pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
+               "/rover/tags": "visualization_msgs/msg/MarkerArray", "/tf": "tf2_msgs/msg/TFMessage"}  # fmt: skip
+    saved = {topic: tmp_path / f"{topic.strip('/').replace('/', '_')}.jsonl" for topic in watched}
+    sdk = {
+        topic: Process(interop, "sdk_node.py", "sub", router, topic, kind, 10**9, "--save", saved[topic])
+        for topic, kind in watched.items()
+    }
+    try:
+        assert all(p.json() == {"ready": True} for p in sdk.values())
+        run = run_rover("run", str(pipeline), "--workers", "2", timeout=300)
+        assert run.returncode == 0, run.stderr
+        got = {}
+        for topic, proc in sdk.items():
+            err = proc.close()
+            assert proc.proc.returncode == 0, err
+            got[topic] = [json.loads(line)["msg"] for line in saved[topic].read_text().splitlines()]
+    finally:
+        for proc in sdk.values():
+            if proc.proc.poll() is None:
+                proc.close()
+    rows = np.loadtxt(out / "trajectory_live.tum", ndmin=2)
+
+    def live_at(stamp: int) -> np.ndarray:
+        """The live pose of that stamp (TUM's seconds hold it to a microsecond at 1.7e9 s)."""
+        k = int(np.argmin(np.abs(rows[:, 0] - stamp / 1e9)))
+        assert abs(rows[k, 0] - stamp / 1e9) < 1e-6, f"no live pose at {stamp}"
+        return rows[k]
+
+    live = rows
+    poses = got["/rover/pose"]
+    assert len(poses) >= len(live) // 4, f"{len(poses)} of {len(live)} poses received"
+    for msg in poses:
+        row = live_at(stamp_of(msg))
+        p = msg["pose"]["pose"]["position"]
+        assert msg["header"]["frame_id"] == "map" and (p["x"], p["y"]) == pytest.approx(row[1:3], abs=1e-6)
+        cov = np.reshape(msg["pose"]["covariance"], (6, 6))
+        assert np.all(np.linalg.eigvalsh(cov[:2, :2]) > 0)
+    odom = sorted(
+        (stamp_ns(m), m)
+        for m in (
+            deserialize(data, "nav_msgs/msg/Odometry") for topic, _t, data in read_bag(dataset) if topic == "/odom"
+        )  # fmt: skip
+    )
+    odom_stamps = [s for s, _m in odom]
+    transforms = [t for m in got["/tf"] for t in m["transforms"]]
+    assert len(transforms) >= len(live) // 4
+    assert {(t["header"]["frame_id"], t["child_frame_id"]) for t in transforms} == {("map", "odom")}
+    for t in transforms:
+        o = odom[bisect.bisect_right(odom_stamps, stamp_of(t)) - 1][1].pose.pose
+        mo = plane(t["transform"]["translation"], t["transform"]["rotation"])
+        q = o.orientation
+        ob = plane({"x": o.position.x, "y": o.position.y}, {"x": q.x, "y": q.y, "z": q.z, "w": q.w})
+        c, sn = math.cos(mo[2]), math.sin(mo[2])
+        mb = (mo[0] + c * ob[0] - sn * ob[1], mo[1] + sn * ob[0] + c * ob[1])
+        row = live_at(stamp_of(t))
+        assert mb == pytest.approx(tuple(row[1:3]), abs=1e-6)
+    sent_tags = {
+        stamp_ns(m): m
+        for m in (deserialize(d, "rover_msgs/msg/TagArray") for _t, _s, d in read_bag(out / "results.mcap"))
+    }
+    arrays = got["/rover/tags"]
+    assert len(arrays) >= len(sent_tags) // 4
+    for array in arrays:
+        spheres = {m["id"]: m["pose"]["position"] for m in array["markers"] if m["ns"] == "tags"}
+        tags = sent_tags[stamp_of(array["markers"][0])] if array["markers"] else None
+        for tag in tags.tags if tags is not None else []:
+            at = spheres[tag.id]
+            assert (at["x"], at["y"]) == pytest.approx((tag.position.x, tag.position.y), abs=1e-9)
+    with (out / "tags.csv").open() as f:
+        final = {int(row["id"]): row for row in csv.DictReader(f) if row["observable"] == "1"}
+    last = sent_tags[max(sent_tags)]
+    assert final and all(
+        (t.position.x, t.position.y) == pytest.approx((float(final[t.id]["x"]), float(final[t.id]["y"])), abs=1e-5)
+        for t in last.tags
+        if t.id in final
+    )

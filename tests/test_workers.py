@@ -225,17 +225,26 @@ def test_a_killed_worker_leaves_partial_results_and_exit_3(simulated, tmp_path):
 def test_status_shows_the_workers_and_sigint_stops_them_all(simulated, tmp_path):
     """`rover status` of the pipeline finds the run's workers on this machine, both answering; SIGINT
     to `rover run` alone (not its process group) is passed on: every worker stops, exit 130, the
-    outputs kept as an interrupted run's."""
+    outputs kept as an interrupted run's. The pipeline has a name of its own: other tests' runs of
+    the default one may be under way on this machine."""
     dataset = simulated("paper", 2, "trajectory.laps=1")
     out = tmp_path / "out"
-    proc = popen_rover("run", "--dataset", str(dataset), "--output", str(out), "--workers", "2", "--speed", "4")
-    wait_until(lambda: len(worker_pids(proc.pid)) == 2, "two workers", procs=[proc])
-    pids = worker_pids(proc.pid)
-    head = wait_for_line(proc, PROGRESS)
-    status = run_rover("status", str(DEFAULT), "--once", "--json", "--interval", "0.2")
-    assert status.returncode == 0, status.stderr
-    hosts = {h["host"]: h for h in json.loads(status.stdout)["hosts"]}
-    assert sorted(hosts) == ["worker0", "worker1"] and all(h["answering"] for h in hosts.values()), hosts
+    pipeline = tmp_path / "watched.yaml"
+    pipeline.write_text(DEFAULT.read_text().replace("\nname: rover\n", "\nname: watched\n", 1))
+    run = ["run", str(pipeline), "--dataset", str(dataset), "--output", str(out), "--workers", "2", "--speed", "4"]
+    proc = popen_rover(*run)
+    try:
+        wait_until(lambda: len(worker_pids(proc.pid)) == 2, "two workers", procs=[proc])
+        pids = worker_pids(proc.pid)
+        head = wait_for_line(proc, PROGRESS)
+        status = run_rover("status", str(pipeline), "--once", "--json", "--interval", "0.2")
+        assert status.returncode == 0, status.stderr
+        hosts = {h["host"]: h for h in json.loads(status.stdout)["hosts"]}
+        assert sorted(hosts) == ["worker0", "worker1"] and all(h["answering"] for h in hosts.values()), hosts
+    except BaseException:
+        proc.terminate()  # passed on to the workers: none is left behind
+        proc.communicate(timeout=60)
+        raise
     sent = time.monotonic()
     proc.send_signal(signal.SIGINT)
     _stdout, err = proc.communicate(timeout=60)

@@ -4,8 +4,8 @@ network). One command per run, everything it saw printed as JSON lines on stdout
 
     python sdk_node.py sub PORT TOPIC TYPE COUNT [--hash H] [--transient-local DEPTH]
         prints {"ready": true} once subscribed, then each message received as {"msg": {...}}
-        (a transient-local one: the publishers' history too), until COUNT have come, its stdin
-        ends, or the deadline
+        (a transient-local one: the publishers' history too; with --save FILE, into FILE), until
+        COUNT have come, its stdin ends, or the deadline
     python sdk_node.py pub PORT TOPIC TYPE [--hash H] [--transient-local DEPTH]
         declares a publisher (--hash e.g. TypeHashNotSupported: as a Humble node; transient local:
         with a cache), prints {"ready": true}, then publishes each JSON message read from stdin,
@@ -101,6 +101,7 @@ def arguments() -> argparse.Namespace:
     ap.add_argument("count", type=int, nargs="?", default=1)
     ap.add_argument("--hash", default=None, help="the type hash to use (default: the SDK's own)")
     ap.add_argument("--transient-local", type=int, metavar="DEPTH", help="durability transient local, depth DEPTH")
+    ap.add_argument("--save", metavar="FILE", help="sub: write the messages to FILE (JSON lines), not stdout")
     return ap.parse_args()
 
 
@@ -114,9 +115,13 @@ def main() -> int:
     if args.command == "sub":
         got: list[Any] = []
         done = threading.Event()
+        saved = open(args.save, "w") if args.save else None  # noqa: SIM115 - closed below, after the subscriber
 
         def on_msg(msg: Any) -> None:
-            say({"msg": plain(msg)})
+            if saved is not None:  # a file never blocks the receiving thread as a full pipe would
+                saved.write(json.dumps({"msg": plain(msg)}) + "\n")
+            else:
+                say({"msg": plain(msg)})
             got.append(msg)
             if len(got) >= args.count:
                 done.set()
@@ -131,6 +136,8 @@ def main() -> int:
         threading.Thread(target=until_stdin_ends, daemon=True).start()
         done.wait(DEADLINE_S)
         sub.close()
+        if saved is not None:
+            saved.close()
     elif args.command == "pub":
         pub = (CachedPublisher if latched else ROS2Publisher)(args.topic, args.type, **where)
         say({"ready": True})
