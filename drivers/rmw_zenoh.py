@@ -125,11 +125,18 @@ def _references(fields: Any) -> list[str]:
     return found
 
 
+NOT_AS_IN_JAZZY = frozenset({"rosbag2_interfaces/msg/ReadSplitEvent", "rosbag2_interfaces/msg/WriteSplitEvent"})
+"""Types whose definition in rosbags' Jazzy store is not Jazzy's own (rosbag2 0.26.0 added
+`node_name` to both): neither their layout nor their hash can be trusted"""
+
+
 @cache
 def same_layout_as_jazzy(typename: str) -> bool:
     """Whether Rover's definition of a type (Humble's, for standard types) has the same fields as
     Jazzy's, nested types included: only then is its CDR what a Jazzy node reads and writes.
     Constants may differ (they change the hash, which is taken from Jazzy's definition)."""
+    if typename in NOT_AS_IN_JAZZY:
+        return False
     pending, seen = [typename], set()
     while pending:
         name = pending.pop()
