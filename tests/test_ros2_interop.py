@@ -40,8 +40,8 @@ WAIT_S = 15.0
 FIRST_WAIT_S = 0.2
 """How long the first message is waited for before it is sent again (its route may be on its way)."""
 POLL_S = 0.005
-REPLAY_SPEED = 4.0
-"""times real time: a live robot's pace, four times over"""
+REPLAY_SPEED = 8.0
+"""times real time: a live robot's pace, eight times over"""
 STAMP_NS = 1_700_000_000_123_456_789
 IMU = "sensor_msgs/msg/Imu"
 STRING = "std_msgs/msg/String"

@@ -25,8 +25,10 @@ from rover.runtime.workers import WorkerPlan
 HUB = "unixsock-stream//tmp/rover-test/hub.sock"
 COMPARED = ("results.mcap", "trajectory.tum", "trajectory_live.tum", "tags.csv", "metrics.json")
 DEFAULT = Path(__file__).parents[1] / "pipeline.yaml"
-PROGRESS = "progress: event time"
-"""The first progress line (after 10 s): a run at --speed 4 of one lap (90 s) is then about half way."""
+UNDER_WAY = "rover: INFO: preintegration: gyro bias"
+"""What worker 0 logs (-v) once the IMU's still start is over: every worker is running, the lap has begun"""
+PACE = ("--speed", "8")
+"""one lap (90 s) in about 11 s: time to act mid-run"""
 
 
 def pipeline_text(tmp_path: Path, body: str, name: str = "p.yaml") -> Path:
@@ -203,13 +205,13 @@ def worker_pids(parent: int) -> dict[int, int]:
 
 @pytest.mark.slow
 def test_a_killed_worker_leaves_partial_results_and_exit_3(simulated, tmp_path):
-    """kill -9 of the worker running the SLAM a third of the way in: the run ends with exit 3, the
+    """kill -9 of the worker running the SLAM once the run is under way: the run ends with exit 3, the
     other worker's outputs are kept (run.json partial, naming the lost worker), no traceback."""
     dataset = simulated("paper", 2, "trajectory.laps=1")
     out = tmp_path / "out"
-    proc = popen_rover("run", "--dataset", str(dataset), "--output", str(out), "--workers", "2", "--speed", "4")
+    proc = popen_rover("-v", "run", "--dataset", str(dataset), "--output", str(out), "--workers", "2", *PACE)
     wait_until(lambda: len(worker_pids(proc.pid)) == 2, "two workers", procs=[proc])
-    head = wait_for_line(proc, PROGRESS)
+    head = wait_for_line(proc, UNDER_WAY)
     slam_worker = 1  # the default pipeline's weights put the SLAM alone in worker 1
     os.kill(worker_pids(proc.pid)[slam_worker], signal.SIGKILL)
     _stdout, err = proc.communicate(timeout=120)
@@ -231,12 +233,12 @@ def test_status_shows_the_workers_and_sigint_stops_them_all(simulated, tmp_path)
     out = tmp_path / "out"
     pipeline = tmp_path / "watched.yaml"
     pipeline.write_text(DEFAULT.read_text().replace("\nname: rover\n", "\nname: watched\n", 1))
-    run = ["run", str(pipeline), "--dataset", str(dataset), "--output", str(out), "--workers", "2", "--speed", "4"]
+    run = ["-v", "run", str(pipeline), "--dataset", str(dataset), "--output", str(out), "--workers", "2", *PACE]
     proc = popen_rover(*run)
     try:
         wait_until(lambda: len(worker_pids(proc.pid)) == 2, "two workers", procs=[proc])
         pids = worker_pids(proc.pid)
-        head = wait_for_line(proc, PROGRESS)
+        head = wait_for_line(proc, UNDER_WAY)
         status = run_rover("status", str(pipeline), "--once", "--json", "--interval", "0.2")
         assert status.returncode == 0, status.stderr
         hosts = {h["host"]: h for h in json.loads(status.stdout)["hosts"]}

@@ -60,8 +60,14 @@ def build(store: Any, typename: str, data: dict[str, Any]) -> dict[str, Any]:
     return kwargs
 
 
+SAYING = threading.Lock()
+
+
 def say(doc: dict[str, Any]) -> None:
-    print(json.dumps(doc), flush=True)
+    """One JSON line, whole: Zenoh's threads and the main one print (print writes the newline apart)."""
+    with SAYING:
+        sys.stdout.write(json.dumps(doc) + "\n")
+        sys.stdout.flush()
 
 
 class CachedPublisher(ROS2Publisher):
