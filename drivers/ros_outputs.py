@@ -3,7 +3,7 @@
 - `tf`: `map -> odom`, so that the robot's own odometry tree (`odom -> base_link`) stays intact: the
   SLAM's pose at its stamp composed with the inverse of the robot's odometry at that stamp (the
   latest odometry at or before it, at most `odom_max_age_s` older; the event-time merge delivers it
-  first). Without an `odom` input wired, `map -> base_link` itself.
+  first). With `odom_frame` empty (a robot without odometry), `map -> base_link` itself.
 - `tf_static`: the antennas (`antenna_0`, ...) and the IMU frame on `base_link`, from the rig.
 - `pose`: the pose with its covariance (robot_localization, nav2, AMCL's form: x, y, yaw).
 - `markers`: per tag a sphere, a label and its `ellipse_sigma` covariance ellipse (RViz2, Foxglove);
@@ -28,6 +28,7 @@ from rover.operator import Emit, In, Operator, Out
 from rover.pipeline.params import Checked, Matches, PositiveFloat
 
 FrameName = Annotated[str, Matches(r"[A-Za-z_][A-Za-z0-9_/]*", "a ROS frame id like map or base_link")]
+OptionalFrame = Annotated[str, Matches(r"([A-Za-z_][A-Za-z0-9_/]*)?", "a ROS frame id like odom, or empty")]
 ELLIPSE_POINTS = 48
 """points of a tag's ellipse (a closed line strip: the first point again at the end)"""
 SPHERE_M = 0.15
@@ -43,7 +44,9 @@ STALE_ODOMETRY = "poses without the robot's odometry within odom_max_age_s befor
 @dataclass(frozen=True)
 class RosOutputsParams(Checked):
     map_frame: FrameName = "map"
-    odom_frame: FrameName = "odom"
+    odom_frame: OptionalFrame = "odom"
+    """the robot's odometry frame, which its `odom` input is in; empty: the robot has none, and /tf
+    gives map -> base_link"""
     base_frame: FrameName = "base_link"
     ellipse_sigma: PositiveFloat = 2.0
     """the tags' ellipses are this many standard deviations (2: 86% of a 2-D Gaussian's mass)"""
@@ -74,11 +77,9 @@ class RosOutputs(Operator):
         super().__init__(params)
         self.odom: tuple[int, float, float, float] | None = None
         """(stamp, x, y, yaw) of the latest odometry"""
-        self.wired_odom = False
 
     def on_input(self, port: str, msg: Any, stamp: int):
         if port == "odom":
-            self.wired_odom = True
             p = msg.pose.pose
             self.odom = (stamp_ns(msg) or stamp, p.position.x, p.position.y, yaw_of(p.orientation))
         elif port == "pose":
@@ -103,7 +104,7 @@ class RosOutputs(Operator):
         at = stamp_ns(msg) or stamp
         q = msg.pose.pose.orientation
         x, y, yaw = msg.pose.pose.position.x, msg.pose.pose.position.y, yaw_of(q)
-        if not self.wired_odom and self.odom is None:
+        if not p.odom_frame:
             yield Emit("tf", self._tf(msg.header.stamp, p.map_frame, p.base_frame, x, y, yaw), stamp)
             return
         if self.odom is None or at - self.odom[0] > p.odom_max_age_s * 1e9:

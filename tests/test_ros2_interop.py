@@ -40,6 +40,12 @@ WAIT_S = 15.0
 FIRST_WAIT_S = 0.2
 """How long the first message is waited for before it is sent again (its route may be on its way)."""
 POLL_S = 0.005
+SHORT_LAP = (*LAP, "trajectory.speed_m_s=1.0")
+"""one lap of the paper's room at 1 m/s: 41 s of data"""
+RECEIVED_SHARE = 0.9
+"""What the independent client must receive at least: all but the run's last samples, which Rover's
+publisher may still hold when its session closes at the end of a replay (42 of 1004 once on the
+90 s lap at 8x; none on the 41 s one in 6 runs). What it receives is a gapless prefix, in order."""
 REPLAY_SPEED = 8.0
 """times real time: a live robot's pace, eight times over"""
 STAMP_NS = 1_700_000_000_123_456_789
@@ -391,15 +397,14 @@ def plane(p: dict[str, Any], q: dict[str, Any]) -> tuple[float, float, float]:
 
 @pytest.mark.slow
 def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router, simulated, tmp_path):
-    """pipelines/ros2.yaml on a replayed lap, over two workers, watched by the independent client:
+    """pipelines/ros2.yaml on a replayed lap (41 s), over two workers, watched by the independent client:
     each /rover/pose it receives is the run's live pose at that stamp (trajectory_live.tum) with a
     positive-definite covariance; each /tf map -> odom composed with the dataset's odometry at that
-    stamp is the pose; each /rover/tags marker array puts every localized tag where the SLAM's tags
-    of that stamp do (recorded beside); the last of the run is tags.csv's.
-
-    The client does not receive every message: 55-70% of them at 4x real time (Rover's own
-    subscription on the same router receives all); so each is checked, and at least a quarter."""
-    dataset = simulated(*LAP)
+    stamp is the pose; each /rover/tags marker array puts every tag where the tags the SLAM sent do,
+    in order (recorded beside); the last of the run is tags.csv's. Nothing is dropped between (the
+    published topics keep all: a slow subscriber holds the replay back); the run's last samples may
+    not have left when the publisher's session closes (RECEIVED_SHARE)."""
+    dataset = simulated(*SHORT_LAP)
     out = tmp_path / "out"
     pipeline = replayed(ROOT / "pipelines" / "ros2.yaml", dataset, router, out, tmp_path / "ros2-replay.yaml")
     watched = {"/rover/pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
@@ -432,7 +437,9 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
 
     live = rows
     poses = got["/rover/pose"]
-    assert len(poses) >= len(live) // 4, f"{len(poses)} of {len(live)} poses received"
+    assert len(poses) >= RECEIVED_SHARE * len(live), f"{len(poses)} of {len(live)} poses received"
+    received = np.array([stamp_of(m) for m in poses]) / 1e9
+    assert np.allclose(received, live[: len(poses), 0], rtol=0, atol=1e-6), "not the run's first poses, in order"
     for msg in poses:
         row = live_at(stamp_of(msg))
         p = msg["pose"]["pose"]["position"]
@@ -447,7 +454,9 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
     )
     odom_stamps = [s for s, _m in odom]
     transforms = [t for m in got["/tf"] for t in m["transforms"]]
-    assert len(transforms) >= len(live) // 4
+    assert len(transforms) >= RECEIVED_SHARE * len(live), f"{len(transforms)} of {len(live)} transforms received"
+    received = np.array([stamp_of(t) for t in transforms]) / 1e9
+    assert np.allclose(received, live[: len(transforms), 0], rtol=0, atol=1e-6), "not the first transforms, in order"
     assert {(t["header"]["frame_id"], t["child_frame_id"]) for t in transforms} == {("map", "odom")}
     for t in transforms:
         o = odom[bisect.bisect_right(odom_stamps, stamp_of(t)) - 1][1].pose.pose
@@ -458,23 +467,20 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         mb = (mo[0] + c * ob[0] - sn * ob[1], mo[1] + sn * ob[0] + c * ob[1])
         row = live_at(stamp_of(t))
         assert mb == pytest.approx(tuple(row[1:3]), abs=1e-6)
-    sent_tags = {
-        stamp_ns(m): m
-        for m in (deserialize(d, "rover_msgs/msg/TagArray") for _t, _s, d in read_bag(out / "results.mcap"))
-    }
+    sent = [deserialize(d, "rover_msgs/msg/TagArray") for _t, _s, d in read_bag(out / "results.mcap")]
     arrays = got["/rover/tags"]
-    assert len(arrays) >= len(sent_tags) // 4
-    for array in arrays:
+    assert len(arrays) >= RECEIVED_SHARE * len(sent), f"{len(arrays)} of {len(sent)} marker arrays received"
+    for array, tags in zip(arrays, sent[: len(arrays)], strict=True):  # the first ones, in order: none lost between
         spheres = {m["id"]: m["pose"]["position"] for m in array["markers"] if m["ns"] == "tags"}
-        tags = sent_tags[stamp_of(array["markers"][0])] if array["markers"] else None
-        for tag in tags.tags if tags is not None else []:
+        assert sorted(spheres) == sorted(t.id for t in tags.tags)
+        for tag in tags.tags:
             at = spheres[tag.id]
             assert (at["x"], at["y"]) == pytest.approx((tag.position.x, tag.position.y), abs=1e-9)
     with (out / "tags.csv").open() as f:
         final = {int(row["id"]): row for row in csv.DictReader(f) if row["observable"] == "1"}
-    last = sent_tags[max(sent_tags)]
+    last = sent[-1] if len(arrays) == len(sent) else None
     assert final and all(
         (t.position.x, t.position.y) == pytest.approx((float(final[t.id]["x"]), float(final[t.id]["y"])), abs=1e-5)
-        for t in last.tags
+        for t in (last.tags if last is not None else [])
         if t.id in final
     )

@@ -71,8 +71,16 @@ def test_stale_odometry_gives_no_transform_and_is_counted():
     assert op.drops == {STALE_ODOMETRY: 1}
 
 
-def test_without_odometry_the_transform_is_map_to_base_link():
+def test_before_the_first_odometry_there_is_no_transform():
+    """A pose before any odometry: no map -> odom yet (counted), and never map -> base_link, which
+    would give base_link a second parent beside the robot's odom."""
     op = RosOutputs()
+    assert [e.port for e in op.on_input("pose", pose_msg(1, 1, 0), T_NS)] == ["pose"]
+    assert op.drops == {STALE_ODOMETRY: 1}
+
+
+def test_a_robot_without_odometry_gets_map_to_base_link():
+    op = RosOutputs(RosOutputsParams(odom_frame=""))
     (tf,) = next(e.msg for e in op.on_input("pose", pose_msg(2.0, -1.0, 0.5), T_NS) if e.port == "tf").transforms
     assert (tf.header.frame_id, tf.child_frame_id) == ("map", "base_link")
     assert planar(tf) == pytest.approx((2.0, -1.0, 0.5), abs=1e-12)
