@@ -9,12 +9,10 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from rover.errors import BadInput
+from rover.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PARTIAL, BadInput
 from rover.pipeline.yamlpos import parse_scalar
 
-EXIT_PARTIAL = 3
-EXIT_BAD_INPUT = 2
-EXIT_FAILED = 1
+__all__ = ["EXIT_BAD_INPUT", "EXIT_FAILED", "EXIT_PARTIAL"]  # re-exported for the commands
 
 
 def default_pipeline() -> Path:

@@ -1,8 +1,14 @@
-"""Exceptions of the library; only the CLI turns them into messages and exit codes."""
+"""Exceptions of the library, and the exit statuses they stand for; only the CLI turns them into messages."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+EXIT_FAILED = 1
+"""an operator failed, or an output could not be written (docs/exit-codes.md)"""
+EXIT_BAD_INPUT = 2
+EXIT_PARTIAL = 3
+"""a host (or worker process) was lost: the outputs are partial"""
 
 
 class RoverError(Exception):

@@ -21,6 +21,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from types import FrameType
 
+from rover.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PARTIAL
 from rover.runtime.workers import WorkerPlan
 
 log = logging.getLogger("rover")
@@ -28,8 +29,7 @@ log = logging.getLogger("rover")
 RUNNING = b"r"
 """What a worker writes on its pipe once the run has begun."""
 POLL_S = 0.1
-EXIT_PARTIAL = 3
-SEVERITY = (1, 2, EXIT_PARTIAL)
+SEVERITY = (EXIT_FAILED, EXIT_BAD_INPUT, EXIT_PARTIAL)
 """Which worker's exit status the run's is when several failed: a failure, bad input, partial results."""
 
 
