@@ -42,10 +42,6 @@ FIRST_WAIT_S = 0.2
 POLL_S = 0.005
 SHORT_LAP = (*LAP, "trajectory.speed_m_s=1.0")
 """one lap of the paper's room at 1 m/s: 41 s of data"""
-RECEIVED_SHARE = 0.9
-"""What the independent client must receive at least: all but the run's last samples, which Rover's
-publisher may still hold when its session closes at the end of a replay (42 of 1004 once on the
-90 s lap at 8x; none on the 41 s one in 6 runs). What it receives is a gapless prefix, in order."""
 REPLAY_SPEED = 8.0
 """times real time: a live robot's pace, eight times over"""
 STAMP_NS = 1_700_000_000_123_456_789
@@ -401,9 +397,9 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
     each /rover/pose it receives is the run's live pose at that stamp (trajectory_live.tum) with a
     positive-definite covariance; each /tf map -> odom composed with the dataset's odometry at that
     stamp is the pose; each /rover/tags marker array puts every tag where the tags the SLAM sent do,
-    in order (recorded beside); the last of the run is tags.csv's. Nothing is dropped between (the
-    published topics keep all: a slow subscriber holds the replay back); the run's last samples may
-    not have left when the publisher's session closes (RECEIVED_SHARE)."""
+    in order (recorded beside); the last of the run is tags.csv's. Every one the run sent arrives, the
+    last ones too (the published topics keep all: a slow subscriber holds the replay back, and the
+    samples still on their way when the run ends are waited for, not cut off)."""
     dataset = simulated(*SHORT_LAP)
     out = tmp_path / "out"
     pipeline = replayed(ROOT / "pipelines" / "ros2.yaml", dataset, router, out, tmp_path / "ros2-replay.yaml")
@@ -418,6 +414,11 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         assert all(p.json() == {"ready": True} for p in sdk.values())
         run = run_rover("run", str(pipeline), "--workers", "2", timeout=300)
         assert run.returncode == 0, run.stderr
+        live = np.loadtxt(out / "trajectory_live.tum", ndmin=2)
+        sent = [deserialize(d, "rover_msgs/msg/TagArray") for _t, _s, d in read_bag(out / "results.mcap")]
+        expected = {"/rover/pose": len(live), "/tf": len(live), "/rover/tags": len(sent)}
+        for topic, proc in sdk.items():  # what is still on its way when the run ends is waited for
+            proc.send({"expect": expected[topic]})
         got = {}
         for topic, proc in sdk.items():
             err = proc.close()
@@ -427,7 +428,7 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         for proc in sdk.values():
             if proc.proc.poll() is None:
                 proc.close()
-    rows = np.loadtxt(out / "trajectory_live.tum", ndmin=2)
+    rows = live
 
     def live_at(stamp: int) -> np.ndarray:
         """The live pose of that stamp (TUM's seconds hold it to a microsecond at 1.7e9 s)."""
@@ -435,11 +436,10 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         assert abs(rows[k, 0] - stamp / 1e9) < 1e-6, f"no live pose at {stamp}"
         return rows[k]
 
-    live = rows
     poses = got["/rover/pose"]
-    assert len(poses) >= RECEIVED_SHARE * len(live), f"{len(poses)} of {len(live)} poses received"
+    assert len(poses) == len(live), f"{len(poses)} of {len(live)} poses received"
     received = np.array([stamp_of(m) for m in poses]) / 1e9
-    assert np.allclose(received, live[: len(poses), 0], rtol=0, atol=1e-6), "not the run's first poses, in order"
+    assert np.allclose(received, live[:, 0], rtol=0, atol=1e-6), "not the run's poses, in order"
     for msg in poses:
         row = live_at(stamp_of(msg))
         p = msg["pose"]["pose"]["position"]
@@ -454,9 +454,9 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
     )
     odom_stamps = [s for s, _m in odom]
     transforms = [t for m in got["/tf"] for t in m["transforms"]]
-    assert len(transforms) >= RECEIVED_SHARE * len(live), f"{len(transforms)} of {len(live)} transforms received"
+    assert len(transforms) == len(live), f"{len(transforms)} of {len(live)} transforms received"
     received = np.array([stamp_of(t) for t in transforms]) / 1e9
-    assert np.allclose(received, live[: len(transforms), 0], rtol=0, atol=1e-6), "not the first transforms, in order"
+    assert np.allclose(received, live[:, 0], rtol=0, atol=1e-6), "not the run's transforms, in order"
     assert {(t["header"]["frame_id"], t["child_frame_id"]) for t in transforms} == {("map", "odom")}
     for t in transforms:
         o = odom[bisect.bisect_right(odom_stamps, stamp_of(t)) - 1][1].pose.pose
@@ -467,10 +467,9 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         mb = (mo[0] + c * ob[0] - sn * ob[1], mo[1] + sn * ob[0] + c * ob[1])
         row = live_at(stamp_of(t))
         assert mb == pytest.approx(tuple(row[1:3]), abs=1e-6)
-    sent = [deserialize(d, "rover_msgs/msg/TagArray") for _t, _s, d in read_bag(out / "results.mcap")]
     arrays = got["/rover/tags"]
-    assert len(arrays) >= RECEIVED_SHARE * len(sent), f"{len(arrays)} of {len(sent)} marker arrays received"
-    for array, tags in zip(arrays, sent[: len(arrays)], strict=True):  # the first ones, in order: none lost between
+    assert len(arrays) == len(sent), f"{len(arrays)} of {len(sent)} marker arrays received"
+    for array, tags in zip(arrays, sent, strict=True):  # in order, none lost
         spheres = {m["id"]: m["pose"]["position"] for m in array["markers"] if m["ns"] == "tags"}
         assert sorted(spheres) == sorted(t.id for t in tags.tags)
         for tag in tags.tags:
@@ -478,9 +477,8 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
             assert (at["x"], at["y"]) == pytest.approx((tag.position.x, tag.position.y), abs=1e-9)
     with (out / "tags.csv").open() as f:
         final = {int(row["id"]): row for row in csv.DictReader(f) if row["observable"] == "1"}
-    last = sent[-1] if len(arrays) == len(sent) else None
     assert final and all(
         (t.position.x, t.position.y) == pytest.approx((float(final[t.id]["x"]), float(final[t.id]["y"])), abs=1e-5)
-        for t in (last.tags if last is not None else [])
+        for t in sent[-1].tags
         if t.id in final
     )

@@ -5,7 +5,8 @@ network). One command per run, everything it saw printed as JSON lines on stdout
     python sdk_node.py sub PORT TOPIC TYPE COUNT [--hash H] [--transient-local DEPTH]
         prints {"ready": true} once subscribed, then each message received as {"msg": {...}}
         (a transient-local one: the publishers' history too; with --save FILE, into FILE), until
-        COUNT have come, its stdin ends, or the deadline
+        COUNT have come, its stdin ends, or the deadline; a line {"expect": N} on stdin makes COUNT N
+        and restarts the deadline (a test that knows after a run how many were sent waits for them all)
     python sdk_node.py pub PORT TOPIC TYPE [--hash H] [--transient-local DEPTH]
         declares a publisher (--hash e.g. TypeHashNotSupported: as a Humble node; transient local:
         with a cache), prints {"ready": true}, then publishes each JSON message read from stdin,
@@ -123,24 +124,35 @@ def main() -> int:
         done = threading.Event()
         saved = open(args.save, "w") if args.save else None  # noqa: SIM115 - closed below, after the subscriber
 
+        count = [args.count]
+        lock = threading.Lock()
+        restarted = threading.Event()
+
         def on_msg(msg: Any) -> None:
             if saved is not None:  # a file never blocks the receiving thread as a full pipe would
                 saved.write(json.dumps({"msg": plain(msg)}) + "\n")
             else:
                 say({"msg": plain(msg)})
-            got.append(msg)
-            if len(got) >= args.count:
-                done.set()
+            with lock:
+                got.append(msg)
+                if len(got) >= count[0]:
+                    done.set()
 
         sub = (HistorySubscriber if latched else ROS2Subscriber)(args.topic, args.type, on_msg, **where)
         say({"ready": True})
 
-        def until_stdin_ends() -> None:
-            sys.stdin.read()
+        def read_stdin() -> None:
+            for line in sys.stdin:
+                with lock:
+                    count[0] = int(json.loads(line)["expect"])
+                    if len(got) >= count[0]:
+                        done.set()
+                restarted.set()
             done.set()
 
-        threading.Thread(target=until_stdin_ends, daemon=True).start()
-        done.wait(DEADLINE_S)
+        threading.Thread(target=read_stdin, daemon=True).start()
+        while not done.wait(DEADLINE_S) and restarted.is_set():
+            restarted.clear()
         sub.close()
         if saved is not None:
             saved.close()
