@@ -397,14 +397,17 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
     each /rover/pose it receives is the run's live pose at that stamp (trajectory_live.tum) with a
     positive-definite covariance; each /tf map -> odom composed with the dataset's odometry at that
     stamp is the pose; each /rover/tags marker array puts every tag where the tags the SLAM sent do,
-    in order (recorded beside); the last of the run is tags.csv's. Every one the run sent arrives, the
+    in order (recorded beside); the last of the run is tags.csv's; the last /rover/path is trajectory.tum,
+    in the map frame. Every one the run sent arrives, the
     last ones too (the published topics keep all: a slow subscriber holds the replay back, and the
     samples still on their way when the run ends are waited for, not cut off)."""
     dataset = simulated(*SHORT_LAP)
     out = tmp_path / "out"
     pipeline = replayed(ROOT / "pipelines" / "ros2.yaml", dataset, router, out, tmp_path / "ros2-replay.yaml")
-    watched = {"/rover/pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
+    watched = {"/rover/pose": "geometry_msgs/msg/PoseWithCovarianceStamped", "/rover/path": "nav_msgs/msg/Path",
                "/rover/tags": "visualization_msgs/msg/MarkerArray", "/tf": "tf2_msgs/msg/TFMessage"}  # fmt: skip
+    port_of = {"/rover/pose": "pose", "/rover/path": "path", "/rover/tags": "markers", "/tf": "tf"}
+    """each topic's input port of pipelines/ros2.yaml's ros2_publish"""
     saved = {topic: tmp_path / f"{topic.strip('/').replace('/', '_')}.jsonl" for topic in watched}
     sdk = {
         topic: Process(interop, "sdk_node.py", "sub", router, topic, kind, 10**9, "--save", saved[topic])
@@ -414,11 +417,9 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         assert all(p.json() == {"ready": True} for p in sdk.values())
         run = run_rover("run", str(pipeline), "--workers", "2", timeout=300)
         assert run.returncode == 0, run.stderr
-        live = np.loadtxt(out / "trajectory_live.tum", ndmin=2)
-        sent = [deserialize(d, "rover_msgs/msg/TagArray") for _t, _s, d in read_bag(out / "results.mcap")]
-        expected = {"/rover/pose": len(live), "/tf": len(live), "/rover/tags": len(sent)}
+        published = json.loads((out / "run.json").read_text())["operators"]["publish"]["received"]
         for topic, proc in sdk.items():  # what is still on its way when the run ends is waited for
-            proc.send({"expect": expected[topic]})
+            proc.send({"expect": published[port_of[topic]]})
         got = {}
         for topic, proc in sdk.items():
             err = proc.close()
@@ -428,7 +429,10 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         for proc in sdk.values():
             if proc.proc.poll() is None:
                 proc.close()
-    rows = live
+    rows = live = np.loadtxt(out / "trajectory_live.tum", ndmin=2)
+    sent = [deserialize(d, "rover_msgs/msg/TagArray") for _t, _s, d in read_bag(out / "results.mcap")]
+    assert published["pose"] == published["tf"] == len(live) and published["markers"] == len(sent)
+    assert {topic: len(got[topic]) for topic in watched} == {t: published[port_of[t]] for t in watched}
 
     def live_at(stamp: int) -> np.ndarray:
         """The live pose of that stamp (TUM's seconds hold it to a microsecond at 1.7e9 s)."""
@@ -475,6 +479,11 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         for tag in tags.tags:
             at = spheres[tag.id]
             assert (at["x"], at["y"]) == pytest.approx((tag.position.x, tag.position.y), abs=1e-9)
+    final = np.loadtxt(out / "trajectory.tum", ndmin=2)  # the last path is the whole trajectory, final
+    path = np.array([[stamp_of(p) / 1e9, *plane(p["pose"]["position"], p["pose"]["orientation"])[:2]]
+                     for p in got["/rover/path"][-1]["poses"]])  # fmt: skip
+    assert got["/rover/path"][-1]["header"]["frame_id"] == "map"
+    assert path.shape == (len(final), 3) and np.allclose(path, final[:, :3], rtol=0, atol=1e-6)
     with (out / "tags.csv").open() as f:
         final = {int(row["id"]): row for row in csv.DictReader(f) if row["observable"] == "1"}
     assert final and all(
