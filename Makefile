@@ -48,10 +48,11 @@ $(INTEROP)/.installed: tests/ros2_interop/requirements.txt
 	$(INTEROP)/bin/python -m pip install --quiet -r tests/ros2_interop/requirements.txt
 	touch $@
 
-# The suite on both cores, then the multi-host tests one at a time (each runs several processes).
+# The suite on both cores, then the multi-host tests two at a time (each lab has its own namespaces;
+# a lab's hosts mostly wait on each other, so two labs share the cores without slowing either much).
 test: lint netns-tools $(INTEROP)/.installed
 	$(BIN)/python -m pytest -q -n 2 -m "not netns" --durations=15
-	$(BIN)/python -m pytest -q -m netns --durations=5
+	$(BIN)/python -m pytest -q -n 2 -m netns --durations=5
 
 # The unit and contract tests only, on both cores: what to run while iterating (docs/contributing.md).
 test-fast: $(STAMP) $(INTEROP)/.installed
