@@ -280,6 +280,21 @@ def _as_rover_cdr(reader: AnyReader, conn: Any, raw: bytes, role: str, same_layo
     return ours
 
 
+def _check_some_csi(
+    where: str, report: Report, topic: str | None, types: list[str], rows: list[tuple[int, int, str, Any]]
+) -> None:
+    """Refuse a conversion that dropped every CSI message of its CSI topic: a dataset without CSI
+    is not what was asked for (a setup that wants none says `topics: {csi: null}`)."""
+    dropped = {why: n for why, n in report.dropped.items() if why.startswith("csi:")}
+    if topic is None or not dropped or any(r[2] == OUTPUT_TOPICS["csi"] for r in rows):
+        return
+    reasons = ", ".join(f"{n:,} {why.removeprefix('csi: ')}" for why, n in sorted(dropped.items()))
+    raise BadInput(
+        f"{where}: topic {topic} ({', '.join(sorted(set(types)))}): every CSI message was dropped ({reasons}); Rover "
+        f"reads {ROLES['csi']} (the CSI Tool's records): nothing written"
+    )
+
+
 def _resolved(path: Path) -> Path:
     try:
         return path.resolve()
@@ -383,6 +398,8 @@ def convert(
                 continue
             rows += [(s, len(rows) + k, OUTPUT_TOPICS[role], m) for k, (s, m) in enumerate(converted)]
         rows += [(s, len(rows) + k, OUTPUT_TOPICS["imu"], m) for k, (s, m) in enumerate(imu.flush())]
+        csi_types = [c.msgtype for c in connections if role_of[c.topic] == "csi"]
+        _check_some_csi(", ".join(map(str, sources.bags)), report, chosen["csi"], csi_types, rows)
         if not rows and total and (lo is not None or hi is not None):
             span = (reader.end_time - reader.start_time) / 1e9
             raise BadInput(

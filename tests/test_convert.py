@@ -14,6 +14,7 @@ import pytest
 from helpers import T0_NS, popen_rover, read_bag, reference_data, run_rover, stop_while_writing
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from rover.datasets.convert import convert
 from rover.errors import BadInput
@@ -311,3 +312,68 @@ def test_an_empty_window_is_refused_and_the_truth_is_clipped_to_the_window(tmp_p
     bag_start = T0_NS + 1_000
     assert poses and min(poses) >= bag_start + 500_000_000 and max(poses) <= bag_start + 1_000_000_000
     assert len(poses) == 5
+
+
+WIFI_MSG = """\
+std_msgs/Header header
+string ap_id
+uint8[6] txmac
+uint16 chan
+uint16 n_sub
+uint8 n_rows
+uint8 n_cols
+string bw
+uint8 mcs
+int32 rssi
+uint16 fc
+uint32 seq_num
+float64[] csi_real
+float64[] csi_imag
+string rx_id
+uint32 msg_id
+"""
+"""rf_msgs/msg/Wifi as WiROS's public description lists its fields (issue 44): another project's CSI"""
+
+
+def wiros_bag(bag: Path, count: int = 50) -> Path:
+    """A ROS 2 bag of `count` WiROS CSI messages on /csi and an IMU on /imu/data."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg(WIFI_MSG, "rf_msgs/msg/Wifi"))
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        csi = writer.add_connection("/csi", "rf_msgs/msg/Wifi", typestore=store)
+        imu = writer.add_connection("/imu/data", "sensor_msgs/msg/Imu", typestore=typestore)
+        for i in range(count * 4):
+            stamp = T0_NS + i * 5_000_000
+            g = make("geometry_msgs/msg/Vector3", z=9.8)
+            writer.write(
+                imu, stamp, serialize(make("sensor_msgs/msg/Imu", header=header(stamp, "imu"), linear_acceleration=g))
+            )
+            if i % 4 == 0:
+                wifi = store.types["rf_msgs/msg/Wifi"]
+                values = np.ones(64 * 4 * 4)
+                msg = wifi(
+                    header=header(stamp, "wifi"), ap_id="ap", txmac=np.arange(6, dtype=np.uint8), chan=36, n_sub=64,
+                    n_rows=4, n_cols=4, bw="20", mcs=0, rssi=-40, fc=0, seq_num=i, csi_real=values, csi_imag=values,
+                    rx_id="rx", msg_id=i,
+                )  # fmt: skip
+                writer.write(csi, stamp, store.serialize_cdr(msg, "rf_msgs/msg/Wifi"))
+    return bag
+
+
+def test_a_conversion_that_drops_every_csi_message_fails_and_writes_nothing(tmp_path):
+    """A bag whose CSI topic holds another project's type (WiROS's rf_msgs/msg/Wifi): every CSI
+    message is dropped, so the conversion fails naming the topic, its type and the count, exit 2,
+    and nothing is written (not a dataset without CSI); an old output stays as it was."""
+    bag = wiros_bag(tmp_path / "bag")
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP + "topics: {csi: /csi, imu: /imu/data, odom: null}\n")
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"before")
+    result = run_rover("convert", str(bag), "-o", str(out), "--setup", str(setup), "--force")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines() == [
+        f"rover: error: {bag}: topic /csi (rf_msgs/msg/Wifi): every CSI message was dropped (50 undecodable); "
+        "Rover reads rover_msgs/msg/CsiFrame (the CSI Tool's records): nothing written"
+    ]
+    assert out.read_bytes() == b"before"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "out.mcap", "setup.yaml"]
