@@ -479,11 +479,11 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
         for tag in tags.tags:
             at = spheres[tag.id]
             assert (at["x"], at["y"]) == pytest.approx((tag.position.x, tag.position.y), abs=1e-9)
-    final = np.loadtxt(out / "trajectory.tum", ndmin=2)  # the last path is the whole trajectory, final
+    smoothed = np.loadtxt(out / "trajectory.tum", ndmin=2)  # the last path is the whole trajectory, final
     path = np.array([[stamp_of(p) / 1e9, *plane(p["pose"]["position"], p["pose"]["orientation"])[:2]]
                      for p in got["/rover/path"][-1]["poses"]])  # fmt: skip
     assert got["/rover/path"][-1]["header"]["frame_id"] == "map"
-    assert path.shape == (len(final), 3) and np.allclose(path, final[:, :3], rtol=0, atol=1e-6)
+    assert path.shape == (len(smoothed), 3) and np.allclose(path, smoothed[:, :3], rtol=0, atol=1e-6)
     with (out / "tags.csv").open() as f:
         final = {int(row["id"]): row for row in csv.DictReader(f) if row["observable"] == "1"}
     assert final and all(

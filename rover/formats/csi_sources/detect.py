@@ -1,0 +1,45 @@
+"""Which tool wrote a CSI capture, from its first bytes; and reading it as `CsiFrames`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rover.errors import BadInput
+from rover.formats.csi_sources import atheros, nexmon, picoscenes
+from rover.formats.csi_sources.frames import CsiFrames
+
+FORMATS = ("atheros", "nexmon", "picoscenes")
+HEAD_BYTES = 256
+"""bytes read to tell the format (a pcap's first Nexmon frame header is within 84)"""
+LOOKS = {"atheros": atheros.looks_like, "nexmon": nexmon.looks_like, "picoscenes": picoscenes.looks_like}
+
+
+def detect_format(path: Path) -> str:
+    """The format of the file, from its contents; BadInput naming what was tried when none fits."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(HEAD_BYTES)
+    except OSError as exc:
+        raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
+    found = [name for name, looks in LOOKS.items() if looks(head)]
+    if not found:
+        raise BadInput(
+            f"{path}: neither an MCAP dataset nor a CSI capture Rover reads (tried: Atheros CSI Tool log, "
+            "Nexmon pcap, PicoScenes .csi; the Intel 5300's CSI Tool logs go to `rover aoa` and `rover calibrate`)"
+        )
+    return found[0]
+
+
+def read_capture(path: str | Path, fmt: str | None = None, chip: str | None = None) -> CsiFrames:
+    """The capture's CSI: its format from its contents unless `fmt` says (a Nexmon capture needs
+    its `chip`)."""
+    path = Path(path)
+    if fmt is not None and fmt not in FORMATS:
+        raise BadInput(f"--format {fmt}: not one of {', '.join(FORMATS)}")
+    fmt = fmt or detect_format(path)
+    try:
+        if fmt == "nexmon":
+            return nexmon.read(path, chip or "")
+        return atheros.read(path) if fmt == "atheros" else picoscenes.read(path)
+    except OSError as exc:
+        raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
