@@ -356,7 +356,7 @@ def test_40_mhz_records_are_decoded_and_used():
         e.msg
         for e in run_operator(op, {"setup": [make("rover_msgs/msg/RigSetup", setup_yaml=rig.text)], "csi": packets})
     ]
-    assert list(op.estimators) == [(channel, True)]
+    assert list(op.estimators) == [(channel, (True, b"", 0.0))]
     errors = np.array([angle_error_deg(a.angle_rad, t) for a, t in zip(out, truths, strict=True)])
     assert np.mean(errors < 3.0) >= 0.9, np.round(errors, 1)
 

@@ -72,10 +72,11 @@ class JointMusic:
         max_paths: int = 4,
         refine_steps: int = 8,
         subcarriers: np.ndarray = SUBCARRIERS_20MHZ,
+        center_hz: float | None = None,
     ):
         self.antennas = np.asarray(antennas_m, dtype=np.float64)
         self.channel = channel
-        self.center_hz = channel_freq_hz(channel)
+        self.center_hz = channel_freq_hz(channel) if center_hz is None else center_hz
         self.offsets_hz = subcarriers * SUBCARRIER_SPACING_HZ
         runs = even_runs(subcarriers)
         self.windows = np.array([run[i : i + window] for run in runs for i in range(len(run) - window + 1)])
@@ -102,7 +103,7 @@ class JointMusic:
         return np.exp(-2j * np.pi * self.step_hz * np.arange(self.window)[None, :] * delays[:, None])
 
     def clean(self, csi: np.ndarray, phase_offsets_rad: np.ndarray | None = None, sto: bool = True) -> np.ndarray:
-        """Remove the per-chain phase offsets and each packet's sampling-time-offset slope. csi: (P, 30, M)."""
+        """Remove the per-chain phase offsets and each packet's sampling-time-offset slope. csi: (P, K, M)."""
         h = np.asarray(csi, dtype=np.complex128)
         if phase_offsets_rad is not None:
             h = h * np.exp(-1j * np.asarray(phase_offsets_rad))[None, None, :]

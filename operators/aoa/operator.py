@@ -121,6 +121,29 @@ def align_packets(clean: np.ndarray, undo: np.ndarray, passes: int = 2) -> np.nd
     return clean * undo[best][:, None, :]
 
 
+INTEL_SUBCARRIERS = len(SUBCARRIERS_20MHZ)
+"""columns of a CSI Tool record (30 at either bandwidth)"""
+Plan = tuple[bool, bytes, float]
+"""a record's subcarrier plan: the CSI Tool's 40 MHz flag, or another source's subcarrier indices
+(as int16 bytes: a cheap key) and centre frequency"""
+PLAN_DTYPE = np.int16
+
+
+def plan_of(msg: Any) -> Plan:
+    """The subcarrier plan of a Csi record."""
+    if len(msg.subcarriers):
+        return False, np.asarray(msg.subcarriers, PLAN_DTYPE).tobytes(), float(msg.centre_freq_hz)
+    return bool(msg.rate & RATE_HT40), b"", 0.0
+
+
+def plan_subcarriers(plan: Plan) -> tuple[np.ndarray, float | None]:
+    """The subcarrier indices and centre frequency (None: the channel's) of a plan."""
+    wide, given, center_hz = plan
+    if given:
+        return np.frombuffer(given, PLAN_DTYPE).astype(np.int64), center_hz or None
+    return (SUBCARRIERS_40MHZ if wide else SUBCARRIERS_20MHZ), None
+
+
 class Aoa(Operator):
     """One Aoa message per burst of a tag's packets."""
 
@@ -135,7 +158,7 @@ class Aoa(Operator):
         super().__init__(params)
         self.setup = RigInput()
         self.rig: Rig | None = None
-        self.estimators: dict[tuple[int, bool], JointMusic] = {}
+        self.estimators: dict[tuple[int, Plan], JointMusic] = {}
         self.waiting: list[tuple[Any, int]] = []
         self.burst: list[tuple[Any, int]] = []
         self.collinear = False
@@ -170,20 +193,22 @@ class Aoa(Operator):
             raise RuntimeError("aoa: no rig description yet")
         return self.rig
 
-    def _estimator(self, channel: int, wide: bool) -> JointMusic:
-        """The estimator of a channel and bandwidth (40 MHz records report other subcarriers)."""
-        if (channel, wide) not in self.estimators:
+    def _estimator(self, channel: int, plan: Plan) -> JointMusic:
+        """The estimator of a channel and subcarrier plan (the CSI Tool's 40 MHz records report other
+        subcarriers than its 20 MHz ones; another source says its own)."""
+        if (channel, plan) not in self.estimators:
             p = self.params
-            antennas = self._rig.antenna_positions_m
-            self.estimators[channel, wide] = JointMusic(
-                antennas,
+            subcarriers, center_hz = plan_subcarriers(plan)
+            self.estimators[channel, plan] = JointMusic(
+                self._rig.antenna_positions_m,
                 channel,
                 window=p.window,
                 angle_step_deg=p.grid_deg,
                 max_paths=p.max_paths,
-                subcarriers=SUBCARRIERS_40MHZ if wide else SUBCARRIERS_20MHZ,
+                subcarriers=subcarriers,
+                center_hz=center_hz,
             )
-        return self.estimators[channel, wide]
+        return self.estimators[channel, plan]
 
     def _add(self, msg: Any, stamp_ns: int):
         if self.burst:
@@ -203,8 +228,8 @@ class Aoa(Operator):
         usable = [(m, s) for m, s in burst if m.nrx == len(self._rig.antenna_positions_m)]
         if len(usable) < len(burst):
             self.drop("packets with another antenna count", len(burst) - len(usable))
-        wide = bool(usable and usable[0][0].rate & RATE_HT40)
-        same = [(m, s) for m, s in usable if bool(m.rate & RATE_HT40) == wide]
+        first = plan_of(usable[0][0]) if usable else None
+        same = [(m, s) for m, s in usable if plan_of(m) == first]
         if len(same) < len(usable):
             self.drop("packets of another bandwidth than their burst's first", len(usable) - len(same))
         usable = same
@@ -212,9 +237,12 @@ class Aoa(Operator):
             self.drop("bursts with too few packets")
             return
         msg0 = usable[0][0]
+        columns = len(msg0.subcarriers) or INTEL_SUBCARRIERS
         csi = np.stack(
             [
-                (m.csi_real.astype(np.float64) + 1j * m.csi_imag.astype(np.float64)).reshape(30, m.nrx, m.ntx)[:, :, 0]
+                (m.csi_real.astype(np.float64) + 1j * m.csi_imag.astype(np.float64)).reshape(columns, m.nrx, m.ntx)[
+                    :, :, 0
+                ]
                 for m, _ in usable
             ]
         )
@@ -223,7 +251,7 @@ class Aoa(Operator):
             self.drop("bursts of empty or invalid CSI")
             return
         csi = csi[finite]
-        music = self._estimator(msg0.channel, wide)
+        music = self._estimator(msg0.channel, first)
         offsets = self._rig.phase_offsets(msg0.channel) if self.params.calibrate else None
         clean = music.clean(csi, offsets, sto=self.params.remove_sto)
         candidates = self._candidates(music, clean, msg0.channel)

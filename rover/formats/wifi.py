@@ -67,6 +67,17 @@ def freq_channel(freq_hz: float) -> int | None:
     return int(round(number)) if abs(number - round(number)) < 1e-6 and 32 <= round(number) <= 177 else None
 
 
+def channel_of(freq_hz: float) -> int | None:
+    """The channel number whose centre is `freq_hz` (2.4 GHz channels 1-14, 5 GHz 32-177), if any."""
+    if abs(freq_hz - 2484e6) < 1:
+        return 14
+    for base, lo, hi in ((2407e6, 1, 13), (5000e6, 32, 177)):
+        number = (freq_hz - base) / 5e6
+        if abs(number - round(number)) < 1e-6 and lo <= round(number) <= hi:
+            return int(round(number))
+    return None
+
+
 RATE_HT40 = 0x800
 """The 40 MHz flag of the Intel 5300's rate_n_flags (iwlwifi's RATE_MCS_HT40_MSK)."""
 
