@@ -11,7 +11,7 @@ import pytest
 from helpers import reference_data, run_rover
 
 from rover.formats.csi_sources import CsiFrames
-from rover.formats.rig import rig_from_text
+from rover.formats.rig import Rig, rig_from_text
 from rover.operators.aoa.capture import capture_bursts, occupied
 
 C_M_S = 299_792_458.0
@@ -55,7 +55,7 @@ def plane_wave(
     )
 
 
-def rig(antennas_m: np.ndarray) -> object:
+def rig(antennas_m: np.ndarray) -> Rig:
     return rig_from_text(f"receiver:\n  antenna_positions_m: {antennas_m.tolist()}\n", "test rig")
 
 

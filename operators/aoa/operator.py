@@ -228,7 +228,7 @@ class Aoa(Operator):
         usable = [(m, s) for m, s in burst if m.nrx == len(self._rig.antenna_positions_m)]
         if len(usable) < len(burst):
             self.drop("packets with another antenna count", len(burst) - len(usable))
-        first = plan_of(usable[0][0]) if usable else None
+        first = plan_of(usable[0][0]) if usable else (False, b"", 0.0)
         same = [(m, s) for m, s in usable if plan_of(m) == first]
         if len(same) < len(usable):
             self.drop("packets of another bandwidth than their burst's first", len(usable) - len(same))
