@@ -15,12 +15,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from rover.errors import BadInput, SpecError
 from rover.formats.bag import BagReader, shown
+from rover.formats.bearings_csv import read_bearings
 from rover.formats.dataset import SETUP_METADATA
 from rover.formats.dataset import TOPICS as DEFAULT_TOPICS
 from rover.formats.rig import load_rig
-from rover.messages import Raw, cdr_stamp_ns, header, message_class
+from rover.messages import Raw, cdr_stamp_ns, header, make, message_class
 from rover.operator import Emit, Out, Source, Watermark
 from rover.pipeline.params import Checked, PositiveFloat
 
@@ -36,6 +39,9 @@ class ReplayParams(Checked):
     topics: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TOPICS))
     setup: str = ""
     """A setup.yaml to send instead of the dataset's own rig description (or when it has none)."""
+    bearings: str = ""
+    """A CSV of bearings from another AoA front end (rover.formats.bearings_csv), sent on `aoa` in
+    time order among the dataset's messages: the SLAM then runs from them, no CSI needed."""
 
 
 class DatasetReplay(Source):
@@ -48,6 +54,7 @@ class DatasetReplay(Source):
         "imu": Out("sensor_msgs/msg/Imu", "IMU samples"),
         "odom": Out("nav_msgs/msg/Odometry", "wheel odometry, when recorded"),
         "setup": Out("rover_msgs/msg/RigSetup", "the rig description, once at the start"),
+        "aoa": Out("rover_msgs/msg/Aoa", "the `bearings` file's bearings, one candidate each (none without it)"),
     }
     Params = ReplayParams
 
@@ -65,10 +72,13 @@ class DatasetReplay(Source):
         if not self.path.is_file():
             raise BadInput(f"{self.path}: no such dataset file")
         for port in p.topics:
-            if port not in self.outputs or port == "setup":
+            if port not in self.outputs or port in ("setup", "aoa"):
                 raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, imu, odom)")
         self._port_of = {topic: port for port, topic in p.topics.items()}
         self._setup_yaml, self._channels, self._span = self._inspect()
+        self._bearings = read_bearings(p.bearings) if p.bearings else None
+        self._sent = 0
+        """bearings of the file sent so far"""
         self._done = 0
         if p.setup:
             try:
@@ -107,9 +117,38 @@ class DatasetReplay(Source):
     def span_ns(self) -> tuple[int, int] | None:
         return self._span
 
+    def _bearings_until(self, until_ns: int | None) -> list[Emit]:
+        """The `bearings` file's bearings up to `until_ns` (None: all the rest) not sent yet, as Aoa
+        messages of one candidate."""
+        b = self._bearings
+        if b is None:
+            return []
+        end = len(b) if until_ns is None else int(np.searchsorted(b.stamp_ns, until_ns, side="right"))
+        start, self._sent = self._sent, max(self._sent, end)
+        return [
+            Emit(
+                "aoa",
+                make(
+                    "rover_msgs/msg/Aoa",
+                    header=header(int(b.stamp_ns[k]), "base_link"),
+                    tag_id=int(b.tag[k]),
+                    angle_rad=float(b.angle_rad[k]),
+                    std_rad=float(b.std_rad[k]),
+                    candidate_angles_rad=b.angle_rad[k : k + 1],
+                    candidate_stds_rad=b.std_rad[k : k + 1],
+                    candidate_powers=np.ones(1),
+                    candidate_jumps=np.zeros(1, np.uint16),
+                    chosen=-1,
+                ),
+                int(b.stamp_ns[k]),
+            )  # fmt: skip
+            for k in range(start, end)
+        ]
+
     def run(self, stop: threading.Event) -> Iterator[Emit | Watermark]:
         speed = self.params.speed
         RigSetup = message_class("rover_msgs/msg/RigSetup")
+        self._sent = 0
         started_wall = started_log = None
         with BagReader(self.path, READ_FAILURE) as bag:
             for message in bag.messages(self._channels, log_time_order=True):
@@ -135,7 +174,9 @@ class DatasetReplay(Source):
                 except ValueError:
                     self.drop(f"messages on {message.topic} too short to carry a header")
                     continue
+                yield from self._bearings_until(stamp)
                 yield Emit(port, Raw(self.outputs[port].type, message.data), stamp)
+        yield from self._bearings_until(None)
         if not self._done:
             wanted = ", ".join(self.params.topics.values())
             log.warning("%s: no messages on %s: the run's outputs are empty", self.path, wanted)

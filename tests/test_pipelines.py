@@ -15,8 +15,12 @@ from rover.pipeline.validation import load_and_check
 PIPELINES = sorted((Path(__file__).resolve().parent.parent / "pipelines").glob("*.yaml"))
 
 
-HOSTS = {"live.yaml": ["base", "laptop", "nuc"], "ros2.yaml": []}
+HOSTS = {"bearings.yaml": [], "live.yaml": ["base", "laptop", "nuc"], "ros2.yaml": []}
 """the hosts each shipped pipeline places its operators on ([]: one machine, the one with the NIC)"""
+
+
+def shipped(name: str) -> Path:
+    return next(p for p in PIPELINES if p.name == name)
 
 
 def test_there_are_shipped_pipelines():
@@ -34,7 +38,7 @@ def test_a_shipped_pipeline_checks_and_draws(path):
 def test_the_ros2_pipeline_takes_the_robots_topics_and_gives_back_what_ros_tools_read():
     """pipelines/ros2.yaml: the IMU and odometry from the robot's graph, the NIC's CSI, and /tf,
     /tf_static (latched), the pose with covariance, the tags' markers and the path published."""
-    pipeline = load_and_check(PIPELINES[-1], BUILTINS)
+    pipeline = load_and_check(shipped("ros2.yaml"), BUILTINS)
     robot, publish = pipeline.nodes["robot"], pipeline.nodes["publish"]
     assert {p: o.type for p, o in robot.ports.outputs.items()} == {
         "imu": "sensor_msgs/msg/Imu",
@@ -51,7 +55,7 @@ def test_the_ros2_pipeline_takes_the_robots_topics_and_gives_back_what_ros_tools
 def test_the_live_pipeline_reads_the_papers_devices_on_their_hosts():
     """The NUC carries the NIC (netlink, channel hops) and the IMU, the base the Create 2, the
     laptop the method; every source is a live one."""
-    pipeline = load_and_check(PIPELINES[0], BUILTINS)
+    pipeline = load_and_check(shipped("live.yaml"), BUILTINS)
     placed = {n.spec.uses: n.spec.host for n in pipeline.nodes.values()}
     assert placed["csi_netlink"] == placed["channel_hop"] == placed["microstrain_imu"] == "nuc"
     assert placed["create2"] == "base" and placed["slam"] == "laptop"
@@ -61,9 +65,9 @@ def test_the_live_pipeline_reads_the_papers_devices_on_their_hosts():
 
 def test_the_docs_ros2_base_variant_checks(tmp_path):
     """docs/live.md's `odom` block for a ROS 2 base, put in place of the Create 2's, passes the checks."""
-    docs = (PIPELINES[0].parent.parent / "docs" / "live.md").read_text()
+    docs = (shipped("live.yaml").parent.parent / "docs" / "live.md").read_text()
     snippet = docs.split("## A ROS 2 base", 1)[1].split("```yaml\n", 1)[1].split("```", 1)[0]
-    text = PIPELINES[0].read_text()
+    text = shipped("live.yaml").read_text()
     create2 = '  odom:\n    uses: create2\n    host: base\n    params: {port: "${base_port}"}\n'
     assert text.count(create2) == 1
     variant = tmp_path / "live-ros2-base.yaml"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from pathlib import Path
@@ -14,6 +15,7 @@ from rover.cli.app import main
 from rover.drivers.replay import DatasetReplay, ReplayParams
 from rover.errors import BadInput
 from rover.formats.bag import BagWriter
+from rover.formats.bearings_csv import HEADER
 from rover.messages import Raw, header, make
 from rover.operator import Emit
 from rover.pipeline.params import ParamValueError
@@ -142,3 +144,53 @@ def test_a_message_too_short_for_a_header_is_dropped_and_counted(tmp_path):
     items = list(replay.run(threading.Event()))
     assert [i.stamp_ns for i in items if isinstance(i, Emit)] == [T0_NS + i * 10_000_000 for i in (0, 1, 3, 4)]
     assert replay.drops == {"messages on /imu/data too short to carry a header": 1}
+
+
+def test_bearings_from_a_csv_leave_on_aoa_in_stamp_order_among_the_datasets_messages(tmp_path):
+    """A bearings file's rows, given out of order, leave sorted by time, each before the first
+    dataset message stamped at or after it (those after the dataset's end last), as one-candidate
+    Aoa messages in the robot's frame."""
+    path = tmp_path / "d.mcap"
+    with BagWriter(path, metadata={"rover.setup": {"yaml": SETUP}}) as bag:
+        for i in range(10):
+            stamp = T0_NS + i * 100_000_000
+            bag.write("/imu/data", make("sensor_msgs/msg/Imu", header=header(stamp)), stamp)
+    csv = tmp_path / "bearings.csv"
+    t0 = T0_NS / 1e9
+    csv.write_text(
+        "time_s,tag,angle_deg,std_deg\n"
+        f"{t0 + 0.35:.9f},2,-90,5\n{t0 + 0.05:.9f},1,30,4\n{t0 + 0.3:.9f},1,31,4\n{t0 + 2.0:.9f},3,180,6\n"
+    )
+    items = [i for i in DatasetReplay(ReplayParams(path=str(path), bearings=str(csv))).run(threading.Event())]
+    ports = [i.port for i in items if isinstance(i, Emit)]
+    # IMU every 0.1 s from 0; bearings at 0.05, 0.3, 0.35 and 2.0 s
+    assert ports == ["setup", "imu", "aoa", "imu", "imu", "aoa", "imu", "aoa", "imu", *["imu"] * 5, "aoa"]
+    stamps = [i.stamp_ns for i in items if isinstance(i, Emit) and i.stamp_ns is not None][1:]
+    assert stamps == sorted(stamps)
+    aoa = [i.msg for i in items if isinstance(i, Emit) and i.port == "aoa"]
+    assert [a.tag_id for a in aoa] == [1, 1, 2, 3]
+    assert [round(math.degrees(a.angle_rad)) for a in aoa] == [30, 31, -90, 180]
+    assert all(list(a.candidate_angles_rad) == [a.angle_rad] and a.chosen == -1 for a in aoa)
+    assert math.degrees(aoa[2].std_rad) == pytest.approx(5.0)
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [
+        ("time,tag,angle,std\n1,1,0,1\n", "line 1: the header must be time_s,tag,angle_deg,std_deg"),
+        ("time_s,tag,angle_deg,std_deg\n1,1,0,1\n2,1,zero,1\n", "line 3: not a number in '2,1,zero,1'"),
+        ("time_s,tag,angle_deg,std_deg\n1,1,0,1\n2,1,0\n", f"line 3: 3 fields, expected 4 ({HEADER})"),
+        ("time_s,tag,angle_deg,std_deg\n1,-1,0,1\n", "line 2: tag -1 is not a non-negative integer id"),
+        ("time_s,tag,angle_deg,std_deg\n1,1,0,0\n", "line 2: std_deg 0 is not positive"),
+        ("time_s,tag,angle_deg,std_deg\n1,1,nan,1\n", "line 2: a value that is not finite"),
+        ("time_s,tag,angle_deg,std_deg\n", "no bearings after the header"),
+    ],
+    ids=["header", "word", "short row", "negative tag", "zero std", "nan", "empty"],
+)
+def test_a_bearings_file_that_breaks_the_format_is_refused_naming_its_line(tmp_path, text, why):
+    dataset = write_imu_dataset(tmp_path / "d.mcap", 20)
+    csv = tmp_path / "bearings.csv"
+    csv.write_text(text)
+    with pytest.raises(BadInput) as caught:
+        DatasetReplay(ReplayParams(path=str(dataset), bearings=str(csv)))
+    assert str(caught.value).startswith(str(csv)) and str(caught.value).endswith(why)

@@ -1,0 +1,52 @@
+"""pipelines/bearings.yaml end to end: Rover's map from another front end's bearings (a CSV) and the
+robot's IMU and odometry, no CSI: here the bearings are those Rover's own AoA gave on the same lap,
+taken as another front end without chain phase jumps would give them (each burst's no-jump angle)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from helpers import LAP, ROOT, read_bag, run_rover
+
+from rover.messages import deserialize
+
+
+@pytest.mark.slow
+def test_the_slam_runs_from_a_csv_of_bearings_and_localizes_what_the_csi_run_did(simulated, tmp_path):
+    """Every tag the run through CSI localized is localized from the bearings alone; the robot and the
+    tags stay within the run's figures' order (under 10 cm and 50 cm), at most 1% of the published
+    estimates beyond 3 sigma (the integrity goal, issue 40), and the bearings file is what the SLAM
+    received (one bearing a burst, none dropped)."""
+    dataset = simulated(*LAP, "receiver.jumps_per_run=false")  # the chains on their calibration: no-jump angles hold
+    through_csi = tmp_path / "csi"
+    run = run_rover("run", str(ROOT / "pipeline.yaml"), "--dataset", str(dataset), "--output", str(through_csi))
+    assert run.returncode == 0, run.stderr
+    rows = [
+        deserialize(d, "rover_msgs/msg/Aoa") for t, _s, d in read_bag(through_csi / "results.mcap") if t == "/rover/aoa"
+    ]
+    csv = tmp_path / "bearings.csv"
+    csv.write_text(
+        "time_s,tag,angle_deg,std_deg\n"
+        + "".join(
+            f"{a.header.stamp.sec + a.header.stamp.nanosec * 1e-9:.9f},{a.tag_id},{math.degrees(a.angle_rad):.9f},"
+            f"{math.degrees(a.std_rad):.9f}\n"
+            for a in rows
+        )
+    )
+    from_bearings = tmp_path / "bearings"
+    run = run_rover(
+        "run", str(ROOT / "pipelines" / "bearings.yaml"), "--dataset", str(dataset), "--set", f"bearings={csv}",
+        "--output", str(from_bearings),
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    before = json.loads((through_csi / "metrics.json").read_text())
+    after = json.loads((from_bearings / "metrics.json").read_text())
+    localized = {t for t, e in before["tags"].items() if e["localized"]}
+    assert localized and {t for t, e in after["tags"].items() if e["localized"]} >= localized
+    assert after["robot"]["trajectory.tum"]["unaligned"]["mean_m"] < 0.10
+    assert all(e["error_m"] < 0.5 for e in after["tags"].values() if e["localized"])
+    assert all(p["beyond_3_sigma"] <= 0.01 for p in after["published"].values() if p.get("estimates"))
+    received = json.loads((from_bearings / "run.json").read_text())["operators"]["slam"]["received"]["aoa"]
+    assert received == len(rows)
