@@ -46,21 +46,42 @@ def log_bursts(records: CsiRecords, rig: Rig, channel: int, burst_packets: int) 
     if len(usable) == 0:
         raise BadInput(f"no beamforming record with {m} receive chains (of {len(records.nrx)})")
     stamps = log_stamps_ns(records.timestamp_low[usable])
-    csi = records.csi[usable, :, :m, :1]
-    rates = records.rate[usable]
-    frames = [
+    csi = records.csi[usable][:, :, :m, 0]
+    return bursts_of(csi, stamps, rig, channel, burst_packets, rates=records.rate[usable])
+
+
+def bursts_of(
+    csi: np.ndarray,
+    stamps_ns: np.ndarray,
+    rig: Rig,
+    channel: int,
+    burst_packets: int,
+    *,
+    rates: np.ndarray | None = None,
+    subcarriers: np.ndarray | None = None,
+    centre_hz: float = 0.0,
+    jumps: bool = True,
+) -> list[Any]:
+    """The Aoa messages of packets' CSI (P, K, M) of one transmit stream, `burst_packets` at a time:
+    the `aoa` operator called on them as Csi records (the CSI Tool's rate flags, or another source's
+    subcarriers and centre frequency)."""
+    given = np.zeros(0, np.int16) if subcarriers is None else subcarriers.astype(np.int16)
+    rate = np.zeros(len(csi), np.int64) if rates is None else rates
+    packets = [
         make(
             "rover_msgs/msg/Csi",
             header=header(int(stamp), "base_link"),
             channel=channel,
-            nrx=m,
+            nrx=csi.shape[2],
             ntx=1,
-            rate=int(rate),
+            rate=int(r),
             csi_real=np.ascontiguousarray(c.real, dtype=np.float32).ravel(),
             csi_imag=np.ascontiguousarray(c.imag, dtype=np.float32).ravel(),
+            subcarriers=given,
+            centre_freq_hz=centre_hz,
         )
-        for stamp, c, rate in zip(stamps, csi, rates, strict=True)
+        for stamp, c, r in zip(stamps_ns, csi, rate, strict=True)
     ]
     setup = make("rover_msgs/msg/RigSetup", setup_yaml=rig.text)
-    params = AoaParams(burst_packets=burst_packets, max_burst_s=1e6)
-    return [e.msg for e in run_operator(Aoa(params), {"setup": [setup], "csi": frames})]
+    params = AoaParams(burst_packets=burst_packets, max_burst_s=1e6, jumps=jumps)
+    return [e.msg for e in run_operator(Aoa(params), {"setup": [setup], "csi": packets})]

@@ -12,9 +12,7 @@ from rover.errors import BadInput
 from rover.formats.csi_sources import CsiFrames
 from rover.formats.rig import Rig
 from rover.formats.wifi import channel_of
-from rover.messages import header, make
-from rover.operators.aoa.operator import Aoa, AoaParams
-from rover.testing import run_operator
+from rover.operators.aoa.bare_log import bursts_of
 
 EMPTY_POWER = 1e-4
 """a subcarrier whose median power over the capture is below this share of the strongest's carries
@@ -50,22 +48,7 @@ def capture_bursts(frames: CsiFrames, rig: Rig, channel: int, centre_hz: float, 
     if len(columns) == 0:
         raise BadInput("its CSI is zero on every subcarrier")
     stamps = frames.timestamp_ns - frames.timestamp_ns.min()
-    csi = frames.csi[:, columns, :, :1]
-    subcarriers = frames.subcarriers[columns].astype(np.int16)
-    packets = [
-        make(
-            "rover_msgs/msg/Csi",
-            header=header(int(stamp), "base_link"),
-            channel=channel,
-            nrx=m,
-            ntx=1,
-            csi_real=np.ascontiguousarray(c.real, dtype=np.float32).ravel(),
-            csi_imag=np.ascontiguousarray(c.imag, dtype=np.float32).ravel(),
-            subcarriers=subcarriers,
-            centre_freq_hz=centre_hz,
-        )
-        for stamp, c in zip(stamps, csi, strict=True)
-    ]
-    setup = make("rover_msgs/msg/RigSetup", setup_yaml=rig.text)
-    params = AoaParams(burst_packets=burst_packets, max_burst_s=1e6, jumps=False)
-    return [e.msg for e in run_operator(Aoa(params), {"setup": [setup], "csi": packets})]
+    return bursts_of(
+        frames.csi[..., 0][:, columns], stamps, rig, channel, burst_packets,
+        subcarriers=frames.subcarriers[columns], centre_hz=centre_hz, jumps=False,
+    )  # fmt: skip
