@@ -15,10 +15,35 @@ from pathlib import Path
 from typing import Any
 
 from rover.errors import BadInput, OutputFailed
-from rover.formats.bag import BagWriter
+from rover.formats.bag import BagReader, BagWriter
 from rover.formats.output_folder import OutputFolder, claim, release
+from rover.formats.run_dir import read_run_files
 from rover.messages import ANY
 from rover.operator import COMPLETE, In, Operator, RunOutcome
+
+RESULTS_METADATA = "rover.results"
+"""the metadata record that marks an MCAP file as a run's recording, which a later run may replace"""
+
+
+def check_replaceable(path: Path) -> None:
+    """BadInput unless the file is absent or an earlier run's: a recording (its `rover.results`
+    record), or a file the folder's run.json lists as that run's. Anything else there (a dataset,
+    the run's own input, a file of the user's) a run's results must never replace (issue 43)."""
+    if not path.exists():
+        return
+    earlier = read_run_files(path.parent)
+    if path.name in earlier:
+        return
+    try:
+        with BagReader(path) as bag:
+            if RESULTS_METADATA in bag.metadata():
+                return
+    except BadInput:
+        pass  # not a readable MCAP file: not a recording either
+    raise BadInput(
+        f"{path}: this run would replace it, and no earlier run wrote it (a dataset? this run's input?): "
+        "give the run another --output, or move the file away"
+    )
 
 
 @dataclass(frozen=True)
@@ -46,15 +71,24 @@ class Recorder(Operator):
         self.folder: OutputFolder | None = None
 
     def start(self) -> None:
-        """Take the output folder for this run (BadInput when another run has it)."""
+        """Take the output folder for this run (BadInput when another run has it, or when the file
+        this run would write is there and no earlier run wrote it: `check_replaceable`)."""
         self.folder = claim(self.path.parent)
+        try:
+            check_replaceable(self.path)
+        except BadInput:
+            release(self.folder)
+            self.folder = None
+            raise
 
     def _writer(self) -> BagWriter:
         if self.bag is None:
             if self.folder is None:
                 raise OutputFailed(f"{self.path}: the recorder was not started")
             try:
-                self.bag = BagWriter(self.folder.stage(self.path.name))
+                self.bag = BagWriter(
+                    self.folder.stage(self.path.name), metadata={RESULTS_METADATA: {"writer": "recorder"}}
+                )
             except BadInput as exc:
                 raise OutputFailed(str(exc)) from None
         return self.bag

@@ -108,6 +108,42 @@ def test_a_run_whose_dataset_is_in_its_output_folder_is_refused_and_loses_nothin
     assert [p.name for p in out.iterdir()] == ["results.mcap"] and dataset.read_bytes() == before
 
 
+RECORD_ONLY = """\
+version: 1
+name: record-only
+vars: {dataset: "", output: out}
+operators:
+  replay: {uses: dataset_replay, params: {path: "${dataset}"}}
+  record: {uses: recorder, inputs: {imu: replay/imu}, params: {out: "${output}", file: imu.mcap}}
+"""
+"""a pipeline whose only writer is a recorder of a file named like its input (the README's own-operator
+example is one): the run_outputs operator's check of its dataset is not there to help"""
+
+
+def test_a_recording_never_replaces_a_file_no_earlier_run_wrote(tmp_path):
+    """A run whose recording would replace its own input (a file of that name, not an earlier run's)
+    is refused before it reads anything: exit 2, one line naming the file, the input as it was and
+    nothing left in the folder; a file the recorder wrote in an earlier run is replaced as before."""
+    pipeline = tmp_path / "record.yaml"
+    pipeline.write_text(RECORD_ONLY)
+    out = tmp_path / "out"
+    out.mkdir()
+    dataset = write_imu_dataset(out / "imu.mcap", 200)
+    before = dataset.read_bytes()
+    proc = run_rover("run", str(pipeline), "--dataset", str(dataset), "--output", str(out))
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"rover: error: {dataset}: this run would replace it, and no earlier run wrote it (a dataset? this run's "
+        "input?): give the run another --output, or move the file away"
+    ]
+    assert [p.name for p in out.iterdir()] == ["imu.mcap"] and dataset.read_bytes() == before
+    other = write_imu_dataset(tmp_path / "other.mcap", 300)
+    for samples in (300, 300):  # the second run replaces the first's recording
+        proc = run_rover("run", str(pipeline), "--dataset", str(other), "--output", str(out / "again"))
+        assert proc.returncode == 0, proc.stderr
+        assert len([t for t, _s, _d in read_bag(out / "again" / "imu.mcap") if t == "/imu"]) == samples
+
+
 @pytest.mark.slow
 def test_a_second_run_into_a_busy_folder_is_refused_and_the_first_keeps_its_results(tmp_path):
     """Run A holds its first message until released; run B into the same folder exits 2 naming A's

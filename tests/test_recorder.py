@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
 from helpers import T0_NS, read_bag
 from rosbags.highlevel import AnyReader
 
 from rover.drivers.recorder import Recorder, RecorderParams
+from rover.errors import BadInput
 from rover.messages import Raw, header, make, serialize
 from rover.operator import COMPLETE, RunOutcome
 
@@ -37,15 +39,25 @@ def test_writes_a_ros2_bag_other_tools_read(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["results.mcap"], "no lock, no staging folder left"
 
 
+def earlier_recording(folder) -> bytes:
+    """An earlier run's results.mcap in `folder` (one IMU sample), as the recorder wrote it; its bytes."""
+    rec = Recorder(RecorderParams(out=str(folder)))
+    rec.start()
+    rec.on_input("imu", imu(7), T0_NS)
+    rec.close()
+    rec.report(COMPLETE)
+    return (folder / "results.mcap").read_bytes()
+
+
 def test_a_failed_run_leaves_the_earlier_file_as_it_was(tmp_path):
-    (tmp_path / "results.mcap").write_bytes(b"an earlier run's file")
+    earlier = earlier_recording(tmp_path)
     rec = Recorder(RecorderParams(out=str(tmp_path)))
     rec.start()
     rec.on_input("imu", imu(0), T0_NS)
     rec.close(RunOutcome("failed", "boom"))
     rec.report(RunOutcome("failed", "boom"))
     assert [p.name for p in tmp_path.iterdir()] == ["results.mcap"]
-    assert (tmp_path / "results.mcap").read_bytes() == b"an earlier run's file"
+    assert (tmp_path / "results.mcap").read_bytes() == earlier
 
 
 def test_a_failed_run_into_a_new_folder_leaves_no_folder(tmp_path):
@@ -57,10 +69,26 @@ def test_a_failed_run_into_a_new_folder_leaves_no_folder(tmp_path):
 
 
 def test_a_run_replaces_the_earlier_file_and_an_empty_run_writes_an_empty_bag(tmp_path):
-    (tmp_path / "results.mcap").write_bytes(b"an earlier run's file")
+    earlier = earlier_recording(tmp_path)
     rec = Recorder(RecorderParams(out=str(tmp_path)))
     rec.start()
-    assert (tmp_path / "results.mcap").read_bytes() == b"an earlier run's file", "nothing removed at the start"
+    assert (tmp_path / "results.mcap").read_bytes() == earlier, "nothing removed at the start"
+    rec.close()
+    rec.report(COMPLETE)
+    assert read_bag(tmp_path / "results.mcap") == []
+
+
+def test_a_file_no_earlier_run_wrote_is_never_replaced(tmp_path):
+    """A file of the recording's name that is not an earlier run's (no `rover.results` record, not
+    listed in the folder's run.json): refused at the start, the file as it was, nothing left behind;
+    listed in run.json it is an earlier run's and may be replaced."""
+    (tmp_path / "results.mcap").write_bytes(b"a dataset, or anything of the user's")
+    with pytest.raises(BadInput, match=r"results\.mcap: this run would replace it, and no earlier run wrote it"):
+        Recorder(RecorderParams(out=str(tmp_path))).start()
+    assert [p.name for p in tmp_path.iterdir()] == ["results.mcap"]
+    (tmp_path / "run.json").write_text('{"status": "complete", "files": ["results.mcap"]}')
+    rec = Recorder(RecorderParams(out=str(tmp_path)))
+    rec.start()
     rec.close()
     rec.report(COMPLETE)
     assert read_bag(tmp_path / "results.mcap") == []

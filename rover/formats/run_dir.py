@@ -202,6 +202,16 @@ def read_run_description(run_dir: str | Path, name: str = RUN_FILE) -> RunDescri
     return RunDescription(Path(dataset) if dataset else None, description.get("status", ""), reason)
 
 
+def read_run_files(run_dir: str | Path) -> set[str]:
+    """The names of the files the folder's run.json says its run wrote (none without a readable one)."""
+    path = Path(run_dir) / RUN_FILE
+    try:
+        files = json.loads(read_text(path)).get("files", [])
+    except (OSError, BadInput, ValueError, RecursionError, AttributeError):
+        return set()
+    return {f for f in files if isinstance(f, str)} if isinstance(files, list) else set()
+
+
 def _json_type(value: object) -> str:
     """The JSON name of a decoded value's type, for messages."""
     names = {
