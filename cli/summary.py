@@ -21,10 +21,13 @@ def run_summary(out: Path) -> list[str]:
     lines.append(f"run {run.get('status', '?')}: {len(stamps):,} poses{span}, {run.get('received', 0):,} messages")
     tags = _tags(out / "tags.csv")
     if tags:
-        known = [t for t, localized in tags if localized]
-        missing = [t for t, localized in tags if not localized]
-        never = f" (never localized: {', '.join(missing)})" if missing else ""
-        lines.append(f"tags localized: {len(known)} of {len(tags)} heard{never}")
+        known = [t for t, state in tags if state == LOCALIZED]
+        lost = [t for t, state in tags if state == EARLIER]
+        never = [t for t, state in tags if state == NEVER]
+        notes = [f"never localized: {', '.join(never)}"] if never else []
+        notes += [f"localized earlier, not at the end: {', '.join(lost)}"] if lost else []
+        shown = f" ({'; '.join(notes)})" if notes else ""
+        lines.append(f"tags localized at the end: {len(known)} of {len(tags)} heard{shown}")
     metrics_file = out / "metrics.json"
     if metrics_file.is_file():
         metrics = json.loads(metrics_file.read_text(encoding="utf-8"))
@@ -45,9 +48,15 @@ def _lines(path: Path) -> list[str]:
     return [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
-def _tags(path: Path) -> list[tuple[str, bool]]:
-    """(id, localized) of every tag in a tags.csv."""
+LOCALIZED, EARLIER, NEVER = "localized", "earlier", "never"
+"""a tag at the run's end: published localized (tags.csv's observable), localized at some time
+before but not at the end (a position, observable 0: the SLAM says why), or never localized"""
+
+
+def _tags(path: Path) -> list[tuple[str, str]]:
+    """(id, state) of every tag in a tags.csv."""
     if not path.is_file():
         return []
     with path.open(encoding="utf-8", newline="") as f:
-        return [(row["id"], bool(row.get("x"))) for row in csv.DictReader(f)]
+        rows = list(csv.DictReader(f))
+    return [(r["id"], LOCALIZED if r.get("observable") == "1" else EARLIER if r.get("x") else NEVER) for r in rows]
