@@ -295,6 +295,12 @@ def _check_some_csi(
     )
 
 
+def _mcap_files(bags: Sequence[Path]) -> list[Path]:
+    """The MCAP files of the bags: each `.mcap` bag, and those in ROS 2 bag folders."""
+    found = [b for b in bags if b.suffix == ".mcap" and b.is_file()]
+    return found + [f for b in bags if b.is_dir() for f in sorted(b.glob("*.mcap"))]
+
+
 def _resolved(path: Path) -> Path:
     try:
         return path.resolve()
@@ -345,6 +351,9 @@ def convert(
     check_output(output, force=force)
     report = Report(output)
     origin = dataset.provenance(command_line, inputs)
+    for bag in _mcap_files(sources.bags):  # a cut file says so, and where, before rosbags' own words
+        with BagReader(bag, "cannot read as a ROS bag"):
+            pass
     try:
         reader = AnyReader(sources.bags)
         reader.open()

@@ -377,3 +377,22 @@ def test_a_conversion_that_drops_every_csi_message_fails_and_writes_nothing(tmp_
     ]
     assert out.read_bytes() == b"before"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "out.mcap", "setup.yaml"]
+
+
+def test_a_bag_cut_while_being_written_says_where_it_ends_and_writes_nothing(tmp_path):
+    """A ROS 2 bag whose MCAP file was cut (the recorder killed): one line saying the file ends early
+    and at which byte, exit 2, no output."""
+    bag = tmp_path / "bag"
+    write_ros2_bag(bag, StoragePlugin.MCAP)
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(SETUP)
+    (mcap,) = bag.glob("*.mcap")
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) // 2])
+    out = tmp_path / "out.mcap"
+    result = run_rover("convert", str(bag), "-o", str(out), "--setup", str(setup))
+    assert result.returncode == 2 and not out.exists()
+    assert result.stderr.splitlines() == [
+        f"rover: error: {mcap}: cannot read as a ROS bag: the file ends early, at byte {len(data) // 2:,} (cut while "
+        "it was being written? a finished MCAP file ends with its magic bytes)"
+    ]
