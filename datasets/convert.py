@@ -351,8 +351,8 @@ def convert(
     check_output(output, force=force)
     report = Report(output)
     origin = dataset.provenance(command_line, inputs)
-    for bag in _mcap_files(sources.bags):  # a cut file says so, and where, before rosbags' own words
-        with BagReader(bag, "cannot read as a ROS bag"):
+    for mcap in _mcap_files(sources.bags):  # a cut file says so, and where, before rosbags' own words
+        with BagReader(mcap, "cannot read as a ROS bag"):
             pass
     try:
         reader = AnyReader(sources.bags)

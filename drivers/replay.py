@@ -117,6 +117,15 @@ class DatasetReplay(Source):
     def span_ns(self) -> tuple[int, int] | None:
         return self._span
 
+    def _skip_bearings_before(self, start_ns: int) -> None:
+        """Drop (and count) the bearings before the dataset's first message: the run's stamps start
+        there, and a source's stamps never go back."""
+        if self._bearings is not None:
+            early = int(np.searchsorted(self._bearings.stamp_ns, start_ns, side="left"))
+            if early:
+                self.drop("bearings before the dataset's first message", early)
+            self._sent = max(self._sent, early)
+
     def _bearings_until(self, until_ns: int | None) -> list[Emit]:
         """The `bearings` file's bearings up to `until_ns` (None: all the rest) not sent yet, as Aoa
         messages of one candidate."""
@@ -156,6 +165,7 @@ class DatasetReplay(Source):
                     return
                 if started_log is None:
                     started_log, started_wall = message.log_time_ns, time.monotonic()
+                    self._skip_bearings_before(started_log)
                     if self._setup_yaml is not None:
                         yield Emit(
                             "setup",

@@ -91,9 +91,11 @@ def test_the_nexmon_sample_holds_what_the_data_readme_states_grouped_per_packet(
     assert list(frames.mac[0]) == by_hand[0]["mac"] and frames.sequence[0] == by_hand[0]["seq"]
     np.testing.assert_array_equal(frames.subcarriers, np.arange(-128, 128))
     assert np.isnan(frames.rssi_db).all()
-    # the DC bin is empty, the band's edges are guards: the strongest bins are inside the band
+    # in increasing frequency, an 80 MHz channel's empty bins are its guards (-128..-123, 123..127)
+    # and DC (-1..1), every other bin carries the channel: in FFT order they would sit elsewhere
     power = np.abs(frames.csi[0]).sum(axis=(1, 2))
-    assert power[128] < np.median(power) and np.argmax(power) not in range(128 - 3, 128 + 4)
+    empty = np.isin(frames.subcarriers, [*range(-128, -122), -1, 0, 1, *range(123, 128)])
+    assert power[empty].max() < 0.1 * np.median(power) < power[~empty].min()
 
 
 def test_the_picoscenes_samples_hold_what_the_data_readme_states():
@@ -190,3 +192,59 @@ def test_rover_info_summarizes_a_capture_as_text_and_json():
     assert info["centre_freqs_mhz"] == [5200.0] and info["transmitters"] == ["00:0e:8e:59:8a:de"]
     text = run_rover("info", str(others() / ATHEROS)).stdout
     assert "56 subcarriers x 3 receive chains x 2 transmit streams" in text and "2437 MHz" in text
+
+
+def atheros_record(nr: int, nc: int, *, tones: int = 56, bw: int = 0, payload: bytes = b"", seed: int = 1) -> bytes:
+    """One record of an Atheros CSI Tool log (little-endian), as its format is described above."""
+    csi_len = -(-tones * nr * nc * 2 * 10 // 8)
+    csi = np.random.default_rng(seed).integers(0, 256, csi_len, dtype=np.uint8).tobytes()
+    status = struct.pack(
+        "<QHHBBBBBBBBBBBH", seed, csi_len, 2437, 0, 0, 143, bw, tones, nr, nc, 50, 40, 41, 42, len(payload)
+    )
+    return struct.pack("<H", len(status) + csi_len + len(payload)) + status + csi + payload
+
+
+def test_atheros_logs_csiread_alone_would_crash_on_are_read_or_refused_in_one_line(tmp_path):
+    """Small records (csiread sizes its buffers for records of 420 bytes), a record of other chains
+    and streams, mixed bandwidths, a payload over csiread's 4 KB buffer: read, counted, or refused
+    naming the record, never a crash."""
+    small = tmp_path / "small.dat"
+    small.write_bytes(b"".join(atheros_record(1, 1, seed=i + 1) for i in range(2000)))
+    assert read_capture(small).csi.shape == (2000, 56, 1, 1)
+    sample = (others() / ATHEROS).read_bytes()
+    mixed = tmp_path / "mixed.dat"
+    mixed.write_bytes(atheros_record(3, 1) + sample)
+    frames = read_capture(mixed)
+    assert frames.csi.shape == (401, 56, 3, 2)
+    assert frames.dropped == {"records of other chains or streams than the commonest (3x2)": 1}
+    for name, data, why in [
+        ("bandwidths.dat", sample + atheros_record(3, 2, tones=114, bw=1), "its records mix 56 and 114 tones"),
+        ("amsdu.dat", atheros_record(3, 2, payload=bytes(5000)) + sample, "record 1 (at byte 0): its payload or CSI"),
+    ]:
+        path = tmp_path / name
+        path.write_bytes(data)
+        result = run_rover("info", str(path))
+        assert result.returncode == 2 and len(result.stderr.splitlines()) == 1 and why in result.stderr
+
+
+def test_nexmon_retransmissions_are_counted_and_a_capture_without_a_whole_packet_is_refused(tmp_path):
+    raw = (others() / NEXMON).read_bytes()
+    twice = tmp_path / "twice.pcap"
+    twice.write_bytes(raw + raw[24:])  # the packet's four frames again, the same sequence number
+    frames = read_capture(twice, chip="4358")
+    assert frames.csi.shape == (1, 256, 2, 2)
+    assert frames.dropped == {"frames repeating their packet's core and stream (a retransmission: the last kept)": 4}
+    three = tmp_path / "three.pcap"
+    three.write_bytes(raw[: 24 + 3 * (16 + 1084)])  # the fourth frame lost
+    with pytest.raises(BadInput, match=r"no packet Rover can use \(1 packets missing the frame of some core"):
+        read_capture(three, chip="4358")
+
+
+def test_a_picoscenes_file_without_a_csi_segment_is_refused(tmp_path):
+    """The QCA9300 sample with its CSI segments renamed: no frame has CSI (csiread skips the segment
+    silently), so one line and exit 2, not a summary of 0 x 0 x 0 packets."""
+    path = tmp_path / "no-csi.csi"
+    path.write_bytes((others() / PICO_QCA).read_bytes().replace(b"\x03CSI", b"\x03XSI"))
+    result = run_rover("info", str(path))
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1
+    assert "no frame with CSI of 312.5 kHz subcarriers" in result.stderr

@@ -148,8 +148,8 @@ def test_a_message_too_short_for_a_header_is_dropped_and_counted(tmp_path):
 
 def test_bearings_from_a_csv_leave_on_aoa_in_stamp_order_among_the_datasets_messages(tmp_path):
     """A bearings file's rows, given out of order, leave sorted by time, each before the first
-    dataset message stamped at or after it (those after the dataset's end last), as one-candidate
-    Aoa messages in the robot's frame."""
+    dataset message stamped at or after it (those after the dataset's end last; those before its
+    start dropped and counted), as one-candidate Aoa messages in the robot's frame."""
     path = tmp_path / "d.mcap"
     with BagWriter(path, metadata={"rover.setup": {"yaml": SETUP}}) as bag:
         for i in range(10):
@@ -160,12 +160,15 @@ def test_bearings_from_a_csv_leave_on_aoa_in_stamp_order_among_the_datasets_mess
     csv.write_text(
         "time_s,tag,angle_deg,std_deg\n"
         f"{t0 + 0.35:.9f},2,-90,5\n{t0 + 0.05:.9f},1,30,4\n{t0 + 0.3:.9f},1,31,4\n{t0 + 2.0:.9f},3,180,6\n"
+        f"{t0 - 1.0:.9f},4,0,5\n"  # before the dataset: dropped and counted
     )
-    items = [i for i in DatasetReplay(ReplayParams(path=str(path), bearings=str(csv))).run(threading.Event())]
+    replay = DatasetReplay(ReplayParams(path=str(path), bearings=str(csv)))
+    items = list(replay.run(threading.Event()))
+    assert replay.drops == {"bearings before the dataset's first message": 1}
     ports = [i.port for i in items if isinstance(i, Emit)]
     # IMU every 0.1 s from 0; bearings at 0.05, 0.3, 0.35 and 2.0 s
     assert ports == ["setup", "imu", "aoa", "imu", "imu", "aoa", "imu", "aoa", "imu", *["imu"] * 5, "aoa"]
-    stamps = [i.stamp_ns for i in items if isinstance(i, Emit) and i.stamp_ns is not None][1:]
+    stamps = [i.stamp_ns for i in items if isinstance(i, Emit) and i.stamp_ns is not None]
     assert stamps == sorted(stamps)
     aoa = [i.msg for i in items if isinstance(i, Emit) and i.port == "aoa"]
     assert [a.tag_id for a in aoa] == [1, 1, 2, 3]

@@ -67,7 +67,7 @@ def read_bearings(path: str | Path) -> Bearings:
     """The file's bearings, sorted by time; BadInput naming the line that breaks the format."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a BOM: a CSV saved by a spreadsheet
     except (OSError, UnicodeDecodeError) as exc:
         raise BadInput(f"{path}: cannot read bearings: {getattr(exc, 'strerror', None) or exc}") from None
     lines = text.splitlines()

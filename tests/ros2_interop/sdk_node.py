@@ -6,7 +6,8 @@ network). One command per run, everything it saw printed as JSON lines on stdout
         prints {"ready": true} once subscribed, then each message received as {"msg": {...}}
         (a transient-local one: the publishers' history too; with --save FILE, into FILE), until
         COUNT have come, its stdin ends, or the deadline; a line {"expect": N} on stdin makes COUNT N
-        and restarts the deadline (a test that knows after a run how many were sent waits for them all)
+        and restarts the deadline, and the end of stdin no longer ends it (a test that knows after a
+        run how many were sent waits for them all, however soon it closes the pipe)
     python sdk_node.py pub PORT TOPIC TYPE [--hash H] [--transient-local DEPTH]
         declares a publisher (--hash e.g. TypeHashNotSupported: as a Humble node; transient local:
         with a cache), prints {"ready": true}, then publishes each JSON message read from stdin,
@@ -142,13 +143,16 @@ def main() -> int:
         say({"ready": True})
 
         def read_stdin() -> None:
+            expected = False
             for line in sys.stdin:
                 with lock:
                     count[0] = int(json.loads(line)["expect"])
+                    expected = True
                     if len(got) >= count[0]:
                         done.set()
                 restarted.set()
-            done.set()
+            if not expected:  # told nothing: the end of the input is the end; told a count: wait for it
+                done.set()
 
         threading.Thread(target=read_stdin, daemon=True).start()
         while not done.wait(DEADLINE_S) and restarted.is_set():

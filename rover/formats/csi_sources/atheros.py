@@ -28,6 +28,8 @@ TONES = {0: 56, 1: 114}
 """tones per bandwidth code (0: 20 MHz, 1: 40 MHz)"""
 BANDWIDTH_HZ = {0: 20e6, 1: 40e6}
 BITS_PER_VALUE = 10
+MAX_FIELD_BYTES = 4096
+"""the largest CSI or payload of a record csiread holds (its buffers)"""
 
 
 def subcarriers(tones: int) -> np.ndarray:
@@ -65,38 +67,89 @@ def looks_like(head: bytes) -> bool:
     return _status(head, "<") is not None or _status(head, ">") is not None
 
 
+def _record_offsets(path: Path, data: bytes, endian: str) -> np.ndarray:
+    """Where each record starts (its length prefix); BadInput when the last runs past the end. A
+    walk over the records' lengths, once per file."""
+    offsets = []
+    at = 0
+    length = struct.Struct(endian + "H")
+    while at + LENGTH_BYTES <= len(data):
+        (n,) = length.unpack_from(data, at)
+        if at + LENGTH_BYTES + n > len(data):
+            break
+        offsets.append(at)
+        at += LENGTH_BYTES + n
+    if at != len(data):
+        raise BadInput(
+            f"{path}: truncated: record {len(offsets) + 1} starts at byte {at:,} and the file ends "
+            f"{len(data) - at:,} bytes into it"
+        )
+    return np.array(offsets, dtype=np.int64)
+
+
+def _statuses(data: bytes, offsets: np.ndarray, endian: str) -> np.ndarray:
+    """Every record's length prefix and status, as one structured array."""
+    fields = [("length", "H"), ("timestamp", "Q"), ("csi_len", "H"), ("tx_channel", "H")]
+    fields += [(name, "B") for name in ("err", "noise", "rate", "bw", "tones", "nr", "nc", "rssi", "r0", "r1", "r2")]
+    fields += [("payload_len", "H")]
+    dtype = np.dtype([(name, ("<" if endian == "<" else ">") + code) for name, code in fields])
+    buf = np.frombuffer(data, np.uint8)
+    raw = buf[offsets[:, None] + np.arange(dtype.itemsize)] if len(offsets) else np.zeros((0, dtype.itemsize), np.uint8)
+    return np.ascontiguousarray(raw).view(dtype).ravel()
+
+
+def _check(path: Path, status: np.ndarray, offsets: np.ndarray) -> None:
+    """BadInput naming the first record whose status is not consistent, or whose sizes csiread
+    cannot hold (CSI or payload over MAX_FIELD_BYTES: an A-MSDU's payload, say)."""
+    tones_of_bw = np.where(status["bw"] == 0, TONES[0], TONES[1])
+    need = np.ceil(status["tones"].astype(np.int64) * status["nr"] * status["nc"] * 2 * BITS_PER_VALUE / 8)
+    bad = (
+        (status["bw"] > 1)
+        | (status["tones"] != tones_of_bw)
+        | (status["nr"] < 1) | (status["nr"] > 3) | (status["nc"] < 1) | (status["nc"] > 3)
+        | (status["csi_len"] != need)
+        | (status["length"] != STATUS_BYTES + status["csi_len"].astype(np.int64) + status["payload_len"])
+    )  # fmt: skip
+    big = (status["csi_len"] > MAX_FIELD_BYTES) | (status["payload_len"] > MAX_FIELD_BYTES)
+    if bad.any() or big.any():
+        k = int(np.flatnonzero(bad | big)[0])
+        why = "its header is not consistent" if bad[k] else f"its payload or CSI is over {MAX_FIELD_BYTES:,} bytes"
+        raise BadInput(f"{path}: record {k + 1} (at byte {int(offsets[k]):,}): {why}")
+    if len(np.unique(status["tones"])) > 1:
+        raise BadInput(f"{path}: its records mix 56 and 114 tones (20 and 40 MHz): split the log by bandwidth")
+
+
 def read(path: Path) -> CsiFrames:
-    """The log's records (all of the first record's shape; others are counted in `dropped`)."""
+    """The log's records of its commonest chains and streams (the others counted in `dropped`: the
+    transmitter's streams follow its rate)."""
     import csiread
 
     data = path.read_bytes()
     head = data[: LENGTH_BYTES + STATUS_BYTES]
     endian = "<" if _status(head, "<") is not None else ">"
-    first = _status(head, endian)
-    if first is None:
+    if _status(head, endian) is None:
         raise BadInput(f"{path}: not an Atheros CSI Tool log (its first record's header is not consistent)")
-    tones, nr, nc = first[7], first[8], first[9]
-    log = csiread.Atheros(str(path), nr, nc, tones=tones, if_report=False)
+    offsets = _record_offsets(path, data, endian)
+    status = _statuses(data, offsets, endian)
+    _check(path, status, offsets)
+    shapes, counts = np.unique(np.stack([status["nr"], status["nc"]], axis=1), axis=0, return_counts=True)
+    nr, nc = (int(v) for v in shapes[np.lexsort((shapes[:, 0], counts))[-1]])  # the commonest; more chains on a tie
+    tones = int(status["tones"][0])
+    log = csiread.Atheros(str(path), 3, 3, tones=tones, if_report=False, bufsize=len(offsets))
     log.read(endian="little" if endian == "<" else "big")
-    count = int(log.count)
-    consumed = int(np.sum(LENGTH_BYTES + STATUS_BYTES + log.csi_len[:count].astype(np.int64) + log.payload_len[:count]))
-    if consumed != len(data):
-        raise BadInput(
-            f"{path}: truncated: record {count + 1} starts at byte {consumed:,} and the file ends "
-            f"{len(data) - consumed:,} bytes into it"
-        )
-    same = (log.num_tones[:count] == tones) & (log.nr[:count] == nr) & (log.nc[:count] == nc)
-    keep = np.flatnonzero(same)
-    dropped = {f"records of another shape than the first's ({tones} tones, {nr}x{nc})": int(count - len(keep))}
-    noise = log.noise_floor[keep].astype(np.int8).astype(np.float64)  # 0: the driver did not fill it in
-    rssi = np.stack([log.rssi_1, log.rssi_2, log.rssi_3], axis=1)[keep, :nr].astype(np.float64)
+    if int(log.count) != len(offsets):
+        raise BadInput(f"{path}: csiread read {log.count} of its {len(offsets)} records")
+    keep = np.flatnonzero((status["nr"] == nr) & (status["nc"] == nc))
+    dropped = {f"records of other chains or streams than the commonest ({nr}x{nc})": len(offsets) - len(keep)}
+    noise = status["noise"][keep].astype(np.int8).astype(np.float64)  # 0: the driver did not fill it in
+    rssi = np.stack([status["r0"], status["r1"], status["r2"]], axis=1)[keep, :nr].astype(np.float64)
     return CsiFrames(
         source="atheros",
-        csi=np.asarray(log.csi[keep], dtype=np.complex128),
+        csi=np.asarray(log.csi[keep][:, :, :nr, :nc], dtype=np.complex128),
         subcarriers=subcarriers(tones),
-        bandwidth_hz=BANDWIDTH_HZ[first[6]],
-        centre_freq_hz=log.tx_channel[keep].astype(np.float64) * 1e6,
-        timestamp_ns=log.timestamp[keep].astype(np.int64) * 1000,
+        bandwidth_hz=BANDWIDTH_HZ[int(status["bw"][0])],
+        centre_freq_hz=status["tx_channel"][keep].astype(np.float64) * 1e6,
+        timestamp_ns=status["timestamp"][keep].astype(np.int64) * 1000,
         rssi_db=rssi,
         noise_dbm=np.where(noise == 0, np.nan, noise),
         mac=np.zeros((len(keep), 6), np.uint8),

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from rover.errors import BadInput
 from rover.formats.csi_sources import atheros, nexmon, picoscenes
 from rover.formats.csi_sources.frames import CsiFrames
@@ -39,7 +41,14 @@ def read_capture(path: str | Path, fmt: str | None = None, chip: str | None = No
     fmt = fmt or detect_format(path)
     try:
         if fmt == "nexmon":
-            return nexmon.read(path, chip or "")
-        return atheros.read(path) if fmt == "atheros" else picoscenes.read(path)
+            frames = nexmon.read(path, chip or "")
+        else:
+            frames = atheros.read(path) if fmt == "atheros" else picoscenes.read(path)
     except OSError as exc:
         raise BadInput(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(frames) == 0:
+        why = "; ".join(f"{n:,} {reason}" for reason, n in frames.dropped.items()) or "it holds none"
+        raise BadInput(f"{path}: no packet Rover can use ({why})")
+    freq = frames.centre_freq_hz
+    same = np.flatnonzero((freq == freq[0]) | (np.isnan(freq) & np.isnan(freq[0])))
+    return frames.take(same, "packets on another channel than the first's (a capture is read one channel at a time)")

@@ -3,7 +3,7 @@ the subcarriers' indices, the bandwidth and centre frequency, and what the sourc
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -12,7 +12,7 @@ from rover.formats.wifi import SUBCARRIER_SPACING_HZ
 
 @dataclass(frozen=True)
 class CsiFrames:
-    """The packets of one capture, all of one shape (a capture mixing shapes keeps its first's and
+    """The packets of one capture, all of one shape (a capture mixing shapes keeps its commonest and
     counts the others in `dropped`). Per-packet arrays have P rows; NaN, -1 or zeros where the
     source does not say."""
 
@@ -46,6 +46,22 @@ class CsiFrames:
     def offsets_hz(self) -> np.ndarray:
         """(K,) each subcarrier's offset from the centre frequency."""
         return self.subcarriers * SUBCARRIER_SPACING_HZ
+
+    def take(self, rows: np.ndarray, why: str) -> CsiFrames:
+        """These packets only; the others counted in `dropped` as `why`."""
+        left = len(self) - len(rows)
+        dropped = {**self.dropped, why: self.dropped.get(why, 0) + left} if left else dict(self.dropped)
+        return replace(
+            self,
+            csi=self.csi[rows],
+            centre_freq_hz=self.centre_freq_hz[rows],
+            timestamp_ns=self.timestamp_ns[rows],
+            rssi_db=self.rssi_db[rows],
+            noise_dbm=self.noise_dbm[rows],
+            mac=self.mac[rows],
+            sequence=self.sequence[rows],
+            dropped=dropped,
+        )
 
     def __post_init__(self) -> None:
         p, k, n, _t = self.csi.shape

@@ -19,6 +19,7 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.formats.csi_sources.frames import CsiFrames
+from rover.formats.wifi import SUBCARRIER_SPACING_HZ
 
 CHIPS = ("4339", "43455c0", "4358", "4366c0")
 PCAP_MAGIC = {b"\xd4\xc3\xb2\xa1": "<", b"\xa1\xb2\xc3\xd4": ">", b"\x4d\x3c\xb2\xa1": "<", b"\xa1\xb2\x3c\x4d": ">"}
@@ -28,6 +29,10 @@ RECORD_HEADER_BYTES = 16
 UDP_PAYLOAD_AT = 42
 """Ethernet, IPv4 and UDP headers before the CSI frame (nexmon_csi's own framing)"""
 CSI_HEADER_BYTES = 18
+FRAME_HEAD_BYTES = UDP_PAYLOAD_AT + CSI_HEADER_BYTES
+"""a frame's bytes before its CSI: the headers, then nexmon_csi's own"""
+MAX_BINS = 256
+"""FFT bins of an 80 MHz channel, the widest read"""
 OLD_MAGIC = 0x11111111
 BANDWIDTHS_HZ = {0x1000: 20e6, 0x1800: 40e6, 0x2000: 80e6}
 """chanspec bandwidth bits (0x3800) -> bandwidth"""
@@ -104,6 +109,13 @@ def read(path: Path, chip: str) -> CsiFrames:
     width = bandwidth_hz(int(chanspec[0]))
     if width is None:
         raise BadInput(f"{path}: frame 1's chanspec 0x{int(chanspec[0]):04x} names no 20, 40 or 80 MHz channel")
+    nfft = round(width / SUBCARRIER_SPACING_HZ)
+    endian = PCAP_MAGIC[data[:4]]
+    caplen = buf[offsets[:, None] - 8 + np.arange(4)].copy().view(endian + "u4").ravel().astype(np.int64)
+    odd = (caplen < FRAME_HEAD_BYTES) | (caplen > FRAME_HEAD_BYTES + 4 * MAX_BINS)
+    if odd.any():
+        at = int(np.flatnonzero(odd)[0])
+        raise BadInput(f"{path}: frame {at + 1} is {int(caplen[at]):,} bytes: no Nexmon CSI frame of up to 80 MHz")
     capture = csiread.Nexmon(str(path), chip=chip, bw=int(width / 1e6), if_report=False)
     capture.read()
     if int(capture.count) != len(offsets):
@@ -114,14 +126,18 @@ def read(path: Path, chip: str) -> CsiFrames:
     seq = u16(payload + 10)
     conf = buf[payload + 12]
     core, stream = conf & 0x7, (conf >> 3) & 0x7
-    used = np.flatnonzero(chanspec == chanspec[0])
+    whole = caplen == FRAME_HEAD_BYTES + 4 * nfft
+    used = np.flatnonzero((chanspec == chanspec[0]) & whole)
+    if len(used) == 0:
+        raise BadInput(f"{path}: no whole CSI frame of its first frame's channel (captured with a short snap length?)")
     # a packet: consecutive frames (of the first's channel) of one sequence number and source
     seq_u, mac_u = seq[used], mac[used]
     starts = np.concatenate([[True], (seq_u[1:] != seq_u[:-1]) | (mac_u[1:] != mac_u[:-1]).any(axis=1)])
     packet = np.cumsum(starts) - 1
     packets = int(packet[-1]) + 1
     chains, streams = int(core[used].max()) + 1, int(stream[used].max()) + 1
-    nfft = capture.csi.shape[1]
+    slot = packet * 64 + core[used] * 8 + stream[used]
+    repeated = len(slot) - len(np.unique(slot))
     csi = np.full((packets, nfft, chains, streams), np.nan + 0j)
     csi[packet, :, core[used], stream[used]] = capture.csi[used]
     rssi_chains = np.full((packets, chains), np.nan)
@@ -129,7 +145,11 @@ def read(path: Path, chip: str) -> CsiFrames:
     keep = np.flatnonzero(np.isfinite(csi).all(axis=(1, 2, 3)))
     k = used[np.flatnonzero(starts)[keep]]
     dropped = {
-        "frames of another channel than the first's": len(offsets) - len(used),
+        "frames of another channel than the first's": int((chanspec != chanspec[0]).sum()),
+        f"frames cut short (not the {FRAME_HEAD_BYTES + 4 * nfft:,} bytes of a whole frame)": int(
+            ((chanspec == chanspec[0]) & ~whole).sum()
+        ),
+        "frames repeating their packet's core and stream (a retransmission: the last kept)": repeated,
         f"packets missing the frame of some core or stream ({chains}x{streams})": packets - len(keep),
     }
     stamps = capture.sec.astype(np.int64) * 10**9 + capture.usec.astype(np.int64) * (1 if capture.nano else 1000)

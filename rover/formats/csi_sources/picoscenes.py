@@ -16,13 +16,12 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.formats.csi_sources.frames import CsiFrames
+from rover.formats.wifi import SUBCARRIER_SPACING_HZ
 
 MAGIC = 0x20150315
 LENGTH = struct.Struct("<I")
-MAX_SHAPE = (2048, 8, 4)
-"""the largest CSI (tones, receive chains, transmit streams) read: 160 MHz of an AX210 fits"""
 MPDU_BYTES = 1522
-DEVICES = {0x5300: "IWL5300", 0x9300: "QCA9300", 0x0200: "AX200", 0x0210: "AX210", 0x1234: "USRP"}
+DEVICES = {0x5300: "IWL5300", 0x9300: "QCA9300", 0x2000: "AX200", 0x2100: "AX210"}
 
 
 def looks_like(head: bytes) -> bool:
@@ -56,17 +55,26 @@ def read(path: Path) -> CsiFrames:
     if not looks_like(data[:8]):
         raise BadInput(f"{path}: not a PicoScenes file (no magic 0x{MAGIC:08x} after its first frame's length)")
     frames = _frame_count(path, data)
-    tones, chains, streams = MAX_SHAPE
-    pico = csiread.Picoscenes(str(path), {"CSI": [tones, chains, streams], "MPDU": MPDU_BYTES}, if_report=False)
+    # a first pass reads the headers only, so that the CSI array is allocated at the file's own size
+    headers = csiread.Picoscenes(str(path), {"CSI": [0, 0, 0], "MPDU": 0}, if_report=False)
+    headers.read()
+    if int(headers.count) != frames:
+        raise BadInput(f"{path}: csiread read {headers.count} of its {frames} frames")
+    info = headers.raw["CSI"]["Info"]
+    shape = np.stack([info["NumTones"], info["NumRx"], info["NumTx"]], axis=1).astype(np.int64)
+    usable = (shape > 0).all(axis=1) & (info["SubcarrierBandwidth"] == SUBCARRIER_SPACING_HZ)
+    if not usable.any():
+        raise BadInput(
+            f"{path}: no frame with CSI of 312.5 kHz subcarriers (a CSI segment csiread reads; HE frames' "
+            "78.125 kHz subcarriers are not supported yet)"
+        )
+    kinds, counts = np.unique(shape[usable], axis=0, return_counts=True)
+    k, n, t = (int(v) for v in kinds[np.lexsort((kinds[:, 1], counts))[-1]])  # the commonest; more chains on a tie
+    keep = np.flatnonzero(usable & (shape == (k, n, t)).all(axis=1))
+    pico = csiread.Picoscenes(str(path), {"CSI": [k, n, t], "MPDU": MPDU_BYTES}, if_report=False)
     pico.read()
-    if int(pico.count) != frames:
-        raise BadInput(f"{path}: csiread read {pico.count} of its {frames} frames")
     raw = pico.raw
     info, basic, mac_header = raw["CSI"]["Info"], raw["RxSBasic"], raw["StandardHeader"]
-    shape = np.stack([info["NumTones"], info["NumRx"], info["NumTx"]], axis=1).astype(np.int64)
-    kinds, counts = np.unique(shape, axis=0, return_counts=True)
-    k, n, t = (int(v) for v in kinds[np.lexsort((kinds[:, 1], counts))[-1]])  # the commonest; more chains on a tie
-    keep = np.flatnonzero((shape == (k, n, t)).all(axis=1))
     device = DEVICES.get(int(info["DeviceType"][keep[0]]), f"device 0x{int(info['DeviceType'][keep[0]]):04x}")
     rssi = np.stack([basic["RSSI1"], basic["RSSI2"], basic["RSSI3"]], axis=1)[keep].astype(np.float64)
     rssi = np.pad(rssi, ((0, 0), (0, max(n - 3, 0))), constant_values=np.nan)[:, :n]
@@ -81,7 +89,12 @@ def read(path: Path) -> CsiFrames:
         noise_dbm=basic["NoiseFloor"][keep].astype(np.float64),
         mac=np.asarray(mac_header["Addr2"][keep], dtype=np.uint8),
         sequence=mac_header["Sequence"][keep].astype(np.int64),
-        dropped={f"frames of another CSI shape than the commonest ({k}x{n}x{t})": frames - len(keep)}
-        if frames > len(keep)
-        else {},
+        dropped={
+            why: count
+            for why, count in (
+                ("frames without CSI, or of HE's 78.125 kHz subcarriers", int((~usable).sum())),
+                (f"frames of another CSI shape than the commonest ({k}x{n}x{t})", int(usable.sum()) - len(keep)),
+            )
+            if count
+        },
     )
