@@ -410,7 +410,9 @@ def test_the_ros2_pipeline_gives_the_graph_what_its_outputs_hold(interop, router
     """each topic's input port of pipelines/ros2.yaml's ros2_publish"""
     saved = {topic: tmp_path / f"{topic.strip('/').replace('/', '_')}.jsonl" for topic in watched}
     sdk = {
-        topic: Process(interop, "sdk_node.py", "sub", router, topic, kind, 10**9, "--save", saved[topic])
+        topic: Process(
+            interop, "sdk_node.py", "sub", router, topic, kind, 10**9, "--save", saved[topic], "--deadline", 600
+        )
         for topic, kind in watched.items()
     }
     try:

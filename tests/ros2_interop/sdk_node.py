@@ -110,6 +110,9 @@ def arguments() -> argparse.Namespace:
     ap.add_argument("--hash", default=None, help="the type hash to use (default: the SDK's own)")
     ap.add_argument("--transient-local", type=int, metavar="DEPTH", help="durability transient local, depth DEPTH")
     ap.add_argument("--save", metavar="FILE", help="sub: write the messages to FILE (JSON lines), not stdout")
+    ap.add_argument(
+        "--deadline", type=float, default=DEADLINE_S, help="sub: the longest wait for COUNT, and after each expect (s)"
+    )
     return ap.parse_args()
 
 
@@ -155,7 +158,7 @@ def main() -> int:
                 done.set()
 
         threading.Thread(target=read_stdin, daemon=True).start()
-        while not done.wait(DEADLINE_S) and restarted.is_set():
+        while not done.wait(args.deadline) and restarted.is_set():
             restarted.clear()
         sub.close()
         if saved is not None:
