@@ -404,9 +404,11 @@ def test_client_measures_each_hosts_clock_offset():
     assert spread is not None and (spread.ahead, spread.behind) == ("a", "b") and spread.too_far
     assert abs(spread.offset_ns - 350 * MS) <= spread.uncertainty_ns + 1 * MS
     text = _text(render(statuses, {}, ["a", "b"], (), offsets))
-    assert re.search(r"^\s*a\s+running\s+12 s\s+\+2[45]\d\.\d ms ±\d+\.\d\s*$", text, re.M), text
-    assert re.search(r"^\s*b\s+running\s+12 s\s+-(99|10\d)\.\d ms ±\d+\.\d\s*$", text, re.M), text
-    assert re.search(r"^! clocks: a is 3[45]\d\.\d ms ±\d+\.\d ahead of b: more than 5 ms", text, re.M), text
+    for host in ("a", "b"):  # the table shows each measured offset and its bound (checked above)
+        shown = f"{offsets[host].offset_ns / MS:+.1f} ms ±{offsets[host].uncertainty_ns / MS:.1f}"
+        assert re.search(rf"^\s*{host}\s+running\s+12 s\s+{re.escape(shown)}\s*$", text, re.M), text
+    ahead = f"a is {spread.offset_ns / MS:.1f} ms ±{spread.uncertainty_ns / MS:.1f} ahead of b: more than 5 ms"
+    assert re.search(rf"^! clocks: {re.escape(ahead)}", text, re.M), text
 
 
 def test_a_host_without_clock_is_noted():
