@@ -18,6 +18,7 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.formats.csi_sources.frames import CsiFrames
+from rover.formats.csi_sources.walk import record_starts
 
 LENGTH_BYTES = 2
 STATUS_FORMAT = "QHHBBBBBBBBBBBH"
@@ -67,26 +68,6 @@ def looks_like(head: bytes) -> bool:
     return _status(head, "<") is not None or _status(head, ">") is not None
 
 
-def _record_offsets(path: Path, data: bytes, endian: str) -> np.ndarray:
-    """Where each record starts (its length prefix); BadInput when the last runs past the end. A
-    walk over the records' lengths, once per file."""
-    offsets = []
-    at = 0
-    length = struct.Struct(endian + "H")
-    while at + LENGTH_BYTES <= len(data):
-        (n,) = length.unpack_from(data, at)
-        if at + LENGTH_BYTES + n > len(data):
-            break
-        offsets.append(at)
-        at += LENGTH_BYTES + n
-    if at != len(data):
-        raise BadInput(
-            f"{path}: truncated: record {len(offsets) + 1} starts at byte {at:,} and the file ends "
-            f"{len(data) - at:,} bytes into it"
-        )
-    return np.array(offsets, dtype=np.int64)
-
-
 def _statuses(data: bytes, offsets: np.ndarray, endian: str) -> np.ndarray:
     """Every record's length prefix and status, as one structured array."""
     fields = [("length", "H"), ("timestamp", "Q"), ("csi_len", "H"), ("tx_channel", "H")]
@@ -129,7 +110,7 @@ def read(path: Path) -> CsiFrames:
     endian = "<" if _status(head, "<") is not None else ">"
     if _status(head, endian) is None:
         raise BadInput(f"{path}: not an Atheros CSI Tool log (its first record's header is not consistent)")
-    offsets = _record_offsets(path, data, endian)
+    offsets = record_starts(path, data, 0, struct.Struct(endian + "H"), 0, "record")
     status = _statuses(data, offsets, endian)
     _check(path, status, offsets)
     shapes, counts = np.unique(np.stack([status["nr"], status["nc"]], axis=1), axis=0, return_counts=True)

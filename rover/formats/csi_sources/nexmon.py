@@ -19,6 +19,7 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.formats.csi_sources.frames import CsiFrames
+from rover.formats.csi_sources.walk import record_starts
 from rover.formats.wifi import SUBCARRIER_SPACING_HZ
 
 CHIPS = ("4339", "43455c0", "4358", "4366c0")
@@ -58,26 +59,6 @@ def bandwidth_hz(chanspec: int) -> float | None:
     return BANDWIDTHS_HZ.get(chanspec & 0x3800)
 
 
-def _frame_offsets(path: Path, data: bytes, endian: str) -> np.ndarray:
-    """Where each pcap record's data starts; BadInput if the last record runs past the end. A walk
-    over the records' lengths, once per file."""
-    offsets = []
-    at = PCAP_HEADER_BYTES
-    record = struct.Struct(endian + "IIII")
-    while at + RECORD_HEADER_BYTES <= len(data):
-        caplen = record.unpack_from(data, at)[2]
-        if at + RECORD_HEADER_BYTES + caplen > len(data):
-            break
-        offsets.append(at + RECORD_HEADER_BYTES)
-        at += RECORD_HEADER_BYTES + caplen
-    if at != len(data):
-        raise BadInput(
-            f"{path}: truncated: frame {len(offsets) + 1} starts at byte {at:,} and the file ends "
-            f"{len(data) - at:,} bytes into it"
-        )
-    return np.array(offsets, dtype=np.int64)
-
-
 def read(path: Path, chip: str) -> CsiFrames:
     """The capture's packets, each the frames of one sequence number (cores x spatial streams)."""
     import csiread
@@ -91,7 +72,8 @@ def read(path: Path, chip: str) -> CsiFrames:
     data = path.read_bytes()
     if not looks_like(data[: PCAP_HEADER_BYTES + RECORD_HEADER_BYTES + UDP_PAYLOAD_AT + 2]):
         raise BadInput(f"{path}: not a Nexmon CSI capture (a pcap whose frames start with 0x1111)")
-    offsets = _frame_offsets(path, data, PCAP_MAGIC[data[:4]])
+    record = struct.Struct(PCAP_MAGIC[data[:4]] + "IIII")  # seconds, microseconds, captured, original length
+    offsets = record_starts(path, data, PCAP_HEADER_BYTES, record, 2, "frame") + RECORD_HEADER_BYTES
     buf = np.frombuffer(data, np.uint8)
     payload = offsets + UDP_PAYLOAD_AT
     if len(payload) == 0 or (payload + CSI_HEADER_BYTES > len(buf)).any():

@@ -16,6 +16,7 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.formats.csi_sources.frames import CsiFrames
+from rover.formats.csi_sources.walk import record_starts
 from rover.formats.wifi import SUBCARRIER_SPACING_HZ
 
 MAGIC = 0x20150315
@@ -29,24 +30,6 @@ def looks_like(head: bytes) -> bool:
     return len(head) >= 8 and struct.unpack_from("<I", head, 4)[0] == MAGIC
 
 
-def _frame_count(path: Path, data: bytes) -> int:
-    """The frames' count from their length prefixes; BadInput if the last runs past the end. A walk
-    over the frames' lengths, once per file."""
-    at, count = 0, 0
-    while at + LENGTH.size <= len(data):
-        (length,) = LENGTH.unpack_from(data, at)
-        if at + LENGTH.size + length > len(data):
-            break
-        at += LENGTH.size + length
-        count += 1
-    if at != len(data):
-        raise BadInput(
-            f"{path}: truncated: frame {count + 1} starts at byte {at:,} and the file ends "
-            f"{len(data) - at:,} bytes into it"
-        )
-    return count
-
-
 def read(path: Path) -> CsiFrames:
     """The file's frames of its commonest CSI shape."""
     import csiread
@@ -54,7 +37,7 @@ def read(path: Path) -> CsiFrames:
     data = path.read_bytes()
     if not looks_like(data[:8]):
         raise BadInput(f"{path}: not a PicoScenes file (no magic 0x{MAGIC:08x} after its first frame's length)")
-    frames = _frame_count(path, data)
+    frames = len(record_starts(path, data, 0, LENGTH, 0, "frame"))
     # a first pass reads the headers only, so that the CSI array is allocated at the file's own size
     headers = csiread.Picoscenes(str(path), {"CSI": [0, 0, 0], "MPDU": 0}, if_report=False)
     headers.read()
