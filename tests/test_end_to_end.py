@@ -227,7 +227,8 @@ def test_a_run_failing_on_a_corrupt_chunk_keeps_the_earlier_runs_results(tmp_pat
     out.mkdir()
     earlier = {name: f"from an earlier run: {name}" for name in ("trajectory.tum", "tags.csv", "metrics.json")}
     earlier["results.mcap"] = "an earlier run's recording"
-    earlier["run.json"] = '{"status": "complete", "dataset": "/earlier/run.mcap"}'
+    files = '["metrics.json", "results.mcap", "tags.csv", "trajectory.tum"]'  # run.json lists a run's files
+    earlier["run.json"] = f'{{"status": "complete", "dataset": "/earlier/run.mcap", "files": {files}}}'
     for name, text in earlier.items():
         (out / name).write_text(text)
     proc = run_rover("run", "--dataset", str(corrupt), "--output", str(out), timeout=600)
