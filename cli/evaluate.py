@@ -21,7 +21,11 @@ def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--tags", help="true tag positions (CSV: id,channel,x,y,z,nlos)")
     p.add_argument("--t-max-diff", type=float, default=0.01, help="largest stamp gap when pairing poses (s)")
     p.add_argument("--json", action="store_true", help="print metrics.json instead of the table")
-    p.add_argument("--figures", action="store_true", help="also draw the figures into the run's folder")
+    p.add_argument(
+        "--figures",
+        action="store_true",
+        help="also draw the figures into the run's folder (against another truth: into its eval-TRUTH/ subfolder)",
+    )
     p.set_defaults(func=run)
 
 
@@ -76,6 +80,13 @@ def run(args: argparse.Namespace) -> int:
     if args.figures:
         from rover.evaluation.figures import write_figures
 
-        written = write_figures(run, truth, Path(args.run))
-        print(f"wrote {', '.join(p.name for p in written)} in {args.run}", file=sys.stderr)
+        folder = Path(args.run)
+        if args.truth and (own is None or notes):  # not (provably) the run's own truth: beside its figures
+            folder = folder / f"eval-{Path(args.truth).stem}"
+            try:
+                folder.mkdir(exist_ok=True)
+            except OSError as exc:
+                raise BadInput(f"{folder}: cannot write the figures: {exc.strerror or exc}") from None
+        written = write_figures(run, truth, folder)
+        print(f"wrote {', '.join(p.name for p in written)} in {folder}", file=sys.stderr)
     return 0

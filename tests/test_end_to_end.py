@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -120,7 +121,8 @@ def test_ground_truth_never_reaches_the_estimate(lap_runs):
 def test_eval_against_another_runs_truth_warns_and_says_so(lap_runs, tmp_path):
     """`rover eval RUN --truth OTHER.tum` with a truth that is not the ground truth of the run's
     dataset (here the run's own estimate moved 1 m): exit 0, a warning naming both, and metrics.json
-    (`--json`) noting it; with the run's own truth, no note."""
+    (`--json`) noting it; with the run's own truth, no note. Its figures go beside the run's own
+    (`eval-other/`), which stay as they were."""
     run = lap_runs["with"].output
     rows = np.loadtxt(run / "trajectory.tum")
     rows[:, 1] += 1.0
@@ -133,6 +135,14 @@ def test_eval_against_another_runs_truth_warns_and_says_so(lap_runs, tmp_path):
     assert note in json.loads(proc.stdout)["notes"]
     own = run_rover("eval", str(run), "--json", check=True)
     assert "notes" not in json.loads(own.stdout), own.stdout
+    copy = tmp_path / "run"  # the shared run's folder stays as it is
+    shutil.copytree(run, copy)
+    pngs = {p.name: p.read_bytes() for p in copy.glob("*.png")}
+    proc = run_rover("eval", str(copy), "--truth", str(other), "--figures")
+    assert proc.returncode == 0 and f"in {copy / 'eval-other'}" in proc.stderr, proc.stderr
+    assert {p.name: p.read_bytes() for p in copy.glob("*.png")} == pngs, "the run's own figures replaced"
+    drawn = {p.name for p in (copy / "eval-other").iterdir()}  # no tag truth in a TUM: no AoA figure
+    assert {"trajectory.png", "robot_error.png", "tag_error.png"} <= drawn <= set(pngs)
 
 
 def test_an_empty_dataset_is_a_clean_run_with_empty_outputs(tmp_path, simulated):

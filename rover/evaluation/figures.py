@@ -46,11 +46,12 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
     ax.plot(*run.live.xy.T, color="tab:orange", lw=0.8, alpha=0.7, label="live estimate")
     ax.plot(*run.final.xy.T, color="tab:blue", lw=1.2, label="final estimate")
     localized = {int(i) for i, xy in zip(run.tag_ids, run.tag_xy, strict=True) if np.isfinite(xy).all()}
+    at_end = localized_at_the_end(run)
     for tag_id, (xy, nlos) in truth.tags.items():
         p = to_start.apply(np.asarray(xy)[None])[0]
         ax.plot(*p, "x", color="tab:red" if nlos else "k", ms=9, mew=2)
-        never = "" if tag_id in localized else ", never localized"
-        label = f"tag {tag_id}{' (NLOS)' if nlos else ''}{never}"
+        state = "" if tag_id in at_end else ", not localized at the end" if tag_id in localized else ", never localized"
+        label = f"tag {tag_id}{' (NLOS)' if nlos else ''}{state}"
         ax.annotate(label, p, textcoords="offset points", xytext=(6, 6))
     ax.plot([], [], "x", color="k", ms=9, mew=2, label="true tag (red: NLOS)")
     ax.plot([], [], "o", color="tab:blue", label=f"estimated tag, {ELLIPSE_SIGMA:.0f}-sigma ellipse")
@@ -117,6 +118,9 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
         ax.yaxis.set_major_formatter(plain)
         ax.yaxis.set_minor_formatter(plain)
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
+    else:
+        heard = ", ".join(str(t) for t in sorted(run.heard)) or "none"
+        ax.text(0.5, 0.5, f"no tag was localized (heard: {heard})", transform=ax.transAxes, ha="center")
     written.append(_save(fig, out / "tag_error.png", plt))
 
     error, aoa_nlos, _std = aoa_errors(run, truth)
@@ -132,6 +136,16 @@ def write_figures(run: RunRecord, truth: Truth, out: Path) -> list[Path]:
         ax.legend()
         written.append(_save(fig, out / "aoa_cdf.png", plt))
     return written
+
+
+def localized_at_the_end(run: RunRecord) -> set[int]:
+    """The tags whose last published estimate is localized (tags.csv's `observable`)."""
+    stamps, ids, _xy, observable, _cov = run.tag_history
+    last: dict[int, bool] = {}
+    for tag_id in np.unique(ids):
+        mine = np.flatnonzero(ids == tag_id)
+        last[int(tag_id)] = bool(observable[mine[np.argmax(stamps[mine])]])
+    return {t for t, ok in last.items() if ok}
 
 
 def _plain_ticks() -> Any:
