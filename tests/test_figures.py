@@ -24,14 +24,11 @@ def drawn(lap_runs, tmp_path_factory) -> dict[str, Any]:
         kept[path.name] = fig
         return path
 
-    saved = figures._save
-    figures._save = keep
-    try:
-        truth = load_truth(run.dataset)
-        assert truth is not None
+    truth = load_truth(run.dataset)
+    assert truth is not None
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(figures, "_save", keep)
         figures.write_figures(load_run(run.output), truth, tmp_path_factory.mktemp("figures"))
-    finally:
-        figures._save = saved
     kept["truth"] = truth
     kept["tags.csv"] = list(csv.DictReader((run.output / "tags.csv").open()))
     kept["t0"] = float((run.output / "trajectory.tum").read_text().split()[0])
