@@ -3,6 +3,7 @@ trajectory, IMU, odometry) that users copy and edit; `--set section.key=value` o
 
 from __future__ import annotations
 
+import dataclasses
 import typing
 from dataclasses import dataclass, field
 from importlib import resources
@@ -165,7 +166,23 @@ def _section(doc: Located, data: Any, path: tuple, cls: type, problems: list[Dia
     return P.bind(cls, data, wording, report)
 
 
+def _check_override(key: str) -> None:
+    """BadInput naming the `--set` when its section, or its key in a section, is none the scenario
+    has (with a did-you-mean), before the scenario file's own checks would point at the file."""
+    parts = key.split(".")
+    section = parts[0]
+    if section == "tags":
+        return
+    if section not in SECTIONS:
+        names = [*SECTIONS, "tags"]
+        raise BadInput(f"--set {key}: no section {section!r} in a scenario{did_you_mean(section, names)}")
+    known = [f.name for f in dataclasses.fields(SECTIONS[section])]
+    if len(parts) >= 2 and parts[1] not in known:
+        raise BadInput(f"--set {key}: no key {parts[1]!r} in section {section!r}{did_you_mean(parts[1], known)}")
+
+
 def _override(data: dict, key: str, value: Any) -> None:
+    _check_override(key)
     parts = key.split(".")
     node = data
     for part in parts[:-1]:

@@ -304,6 +304,9 @@ def test_an_empty_window_is_refused_and_the_truth_is_clipped_to_the_window(tmp_p
     out = tmp_path / "out.mcap"
     with pytest.raises(BadInput, match=r"--start 100 is not before --end 50"):
         convert([bag], out, setup=setup, start=100, end=50)
+    cli = run_rover("convert", str(bag), "-o", str(out), "--setup", str(setup), "--start", "100", "--end", "50")
+    assert cli.returncode == 2 and not out.exists()
+    assert cli.stderr.splitlines() == ["rover: error: --start 100 is not before --end 50: the window holds nothing"]
     with pytest.raises(BadInput, match=r"--start/--end hold none of its 442 sensor messages \(it spans 2\.0 s"):
         convert([bag], out, setup=setup, start=100, truth=truth)
     assert not out.exists()

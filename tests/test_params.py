@@ -31,6 +31,10 @@ def hints() -> dict:
         ("rate_hz", 0, "must be > 0, got 0"),
         ("rate_hz", float("nan"), "expected a finite number"),
         ("rate_hz", float("inf"), "expected a finite number"),
+        # the words Python's float() reads as infinite or not a number, as a command line gives them
+        ("rate_hz", "inf", "expected a finite number, got 'inf'"),
+        ("rate_hz", "-Infinity", "expected a finite number, got '-Infinity'"),
+        ("rate_hz", "nan", "expected a finite number, got 'nan'"),
         ("window", 11, "must be >= 2 and <= 10, got 11"),
         ("window", 2.5, "expected int"),
         ("limit_s", -1.0, "expected float > 0 | null"),

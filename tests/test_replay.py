@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import T0_NS, read_bag, write_imu_dataset
+from helpers import T0_NS, read_bag, run_rover, write_imu_dataset
 from mcap.reader import make_reader
 
 from rover.cli.app import main
@@ -197,3 +197,17 @@ def test_a_bearings_file_that_breaks_the_format_is_refused_naming_its_line(tmp_p
     with pytest.raises(BadInput) as caught:
         DatasetReplay(ReplayParams(path=str(dataset), bearings=str(csv)))
     assert str(caught.value).startswith(str(csv)) and str(caught.value).endswith(why)
+
+
+def test_run_of_a_folder_as_its_dataset_says_to_convert_it_in_one_line(tmp_path):
+    """`rover run --dataset DIR` (a ROS 2 bag folder, say): exit 2, one line saying how it becomes a
+    dataset, nothing written."""
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    out = tmp_path / "out"
+    result = run_rover("run", "--dataset", str(folder), "--output", str(out))
+    assert result.returncode == 2 and not out.exists()
+    assert result.stderr.splitlines() == [
+        f"rover: error: {folder}: is a folder, not a dataset: a ROS 2 bag or a recording folder becomes one "
+        f"with `rover convert {folder} -o DATASET.mcap`"
+    ]

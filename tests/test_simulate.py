@@ -394,3 +394,18 @@ def test_persistent_steps_happen_at_random_moments_and_stay():
     expected[first_chain] = first_sign
     assert np.all(multiples[after] == expected)
     assert chain_jumps(Receiver(), 4, windows, window_channel, 3, t, 1200.0).steps == []
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("outptu.x=1", "--set outptu.x: no section 'outptu' in a scenario"),
+        ("recever.dwell_s=1", "--set recever.dwell_s: no section 'recever' in a scenario; did you mean 'receiver'?"),
+        ("receiver.dwel_s=1", "--set receiver.dwel_s: no key 'dwel_s' in section 'receiver'; did you mean 'dwell_s'?"),
+    ],
+)
+def test_a_set_of_no_section_or_key_of_the_scenario_names_the_set_with_a_did_you_mean(tmp_path, setting, message):
+    out = tmp_path / "x.mcap"
+    result = run_rover("simulate", "-o", str(out), "--set", setting)
+    assert result.returncode == 2 and result.stderr.splitlines() == [f"rover: error: {message}"]
+    assert not out.exists()

@@ -112,6 +112,10 @@ def type_label(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+NON_FINITE = ("inf", "infinity", "nan", ".inf", ".nan")
+"""the words Python's float() (and YAML) read as infinite or not a number"""
+
+
 def coerce(value: Any, tp: Any) -> Any:
     """Return `value` as type `tp` or raise ParamTypeError; ints widen to float, nothing else is guessed.
 
@@ -164,6 +168,8 @@ def coerce(value: Any, tp: Any) -> Any:
             if not math.isfinite(value):
                 raise ParamTypeError(f"expected a finite number, got {value!r}")
             return float(value)
+        if isinstance(value, str) and value.strip().lower().lstrip("+-") in NON_FINITE:
+            raise ParamTypeError(f"expected a finite number, got {value!r}")
     elif tp is int:
         if isinstance(value, int) and not isinstance(value, bool):
             return value
