@@ -31,6 +31,8 @@ from rover.errors import BadInput, OutputFailed
 
 LOCK_FILE = ".rover.lock"
 STAGING_PREFIX = ".rover-run-"
+LOCK_ATTEMPTS = 10
+"""times a claim locks again when the lock file it locked was unlinked by the run that held it"""
 
 
 class FolderBusy(BadInput):
@@ -115,6 +117,26 @@ def claim(folder: str | Path) -> OutputFolder:
         if path.exists() and not path.is_dir():
             raise BadInput(f"{path}: not a folder (the output of a run is a folder)")
         created = not path.exists()
+        fd = _lock(path)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        for stale in path.glob(f"{STAGING_PREFIX}*"):  # a run killed before it could clean up
+            shutil.rmtree(stale, ignore_errors=True)
+        staging = path / f"{STAGING_PREFIX}{os.getpid()}"
+        try:
+            staging.mkdir()
+        except OSError as exc:
+            os.close(fd)
+            raise BadInput(f"{path}: cannot write the output folder: {exc.strerror or exc}") from None
+        _claims[key] = OutputFolder(path, staging, fd, created)
+        return _claims[key]
+
+
+def _lock(path: Path) -> int:
+    """Create the folder (and its parents) and take its lock file, exclusively; the file descriptor.
+    The last user of a claim unlinks the lock file while holding it, so a lock taken on a file that
+    is no longer the folder's (opened just before that unlink) is let go and taken again on the new one."""
+    for _attempt in range(LOCK_ATTEMPTS):
         try:
             path.mkdir(parents=True, exist_ok=True)
             fd = os.open(path / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
@@ -131,18 +153,14 @@ def claim(folder: str | Path) -> OutputFolder:
                     "wait for it, or give this one another --output"
                 ) from None
             raise BadInput(f"{path}: cannot lock the output folder: {exc.strerror or exc}") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        for stale in path.glob(f"{STAGING_PREFIX}*"):  # a run killed before it could clean up
-            shutil.rmtree(stale, ignore_errors=True)
-        staging = path / f"{STAGING_PREFIX}{os.getpid()}"
         try:
-            staging.mkdir()
-        except OSError as exc:
-            os.close(fd)
-            raise BadInput(f"{path}: cannot write the output folder: {exc.strerror or exc}") from None
-        _claims[key] = OutputFolder(path, staging, fd, created)
-        return _claims[key]
+            current = os.stat(path / LOCK_FILE).st_ino
+        except FileNotFoundError:
+            current = -1
+        if current == os.fstat(fd).st_ino:
+            return fd
+        os.close(fd)  # the file we locked was unlinked by the run before: lock the folder's own
+    raise BadInput(f"{path}: cannot lock the output folder: its lock file keeps being replaced")
 
 
 def release(claimed: OutputFolder) -> None:
