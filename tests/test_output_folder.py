@@ -192,10 +192,10 @@ def test_a_lock_taken_on_a_lock_file_just_unlinked_is_taken_again_on_the_folders
     """The run before unlinks its lock file as it lets go: a claim that opened that file just before
     and locks it would share the folder with the next run, which creates a new one. It sees the
     file is no longer the folder's and locks the new one instead."""
-    from rover.formats import output_folder
+    import fcntl
 
-    locked = []
-    flock = output_folder.fcntl.flock
+    locked: list[int] = []
+    flock = fcntl.flock
 
     def release_meanwhile(fd: int, how: int) -> None:
         if not locked:  # the run before lets go between this claim's open and its lock
@@ -204,7 +204,7 @@ def test_a_lock_taken_on_a_lock_file_just_unlinked_is_taken_again_on_the_folders
         locked.append(fd)
         flock(fd, how)
 
-    monkeypatch.setattr(output_folder.fcntl, "flock", release_meanwhile)
+    monkeypatch.setattr(fcntl, "flock", release_meanwhile)
     claimed = claim(tmp_path)
     assert len(locked) == 2 and os.fstat(claimed.lock_fd).st_ino == os.stat(tmp_path / LOCK_FILE).st_ino
     release(claimed)
