@@ -90,3 +90,19 @@ def test_python_api_script_refuses_a_dataset_without_a_rig(tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"{dataset}: no rig description (rover.setup): convert it with --setup"
+
+
+def test_the_readmes_operator_line_added_to_the_default_pipeline_checks(tmp_path):
+    """The README's `In the pipeline:` line, added as it is under the default pipeline's operators
+    (on one machine and split over its three hosts), passes `rover check` with mylab importable."""
+    (line,) = re.findall(r"^In the pipeline: `(scale: \{.*\})`", README, flags=re.M)
+    text = (ROOT / "rover" / "pipeline.yaml").read_text()
+    assert "\noperators:\n" in text
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(text.replace("\noperators:\n", f"\noperators:\n  {line}\n", 1))
+    env = dict(os.environ, PYTHONPATH=str(EXAMPLES / "own_operator"))
+    for host in ([], ["--host", "nuc"]):
+        proc = subprocess.run(
+            [sys.executable, "-m", "rover.cli", "check", str(path), *host], capture_output=True, text=True, env=env
+        )
+        assert proc.returncode == 0, proc.stderr
