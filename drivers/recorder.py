@@ -16,30 +16,38 @@ from typing import Any
 
 from rover.errors import BadInput, OutputFailed
 from rover.formats.bag import BagReader, BagWriter
+from rover.formats.dataset import PROVENANCE_METADATA, RECORD_METADATA, SETUP_METADATA
 from rover.formats.output_folder import OutputFolder, claim, release
-from rover.formats.run_dir import read_run_files
+from rover.formats.run_dir import RUN_FILE, read_run_files
 from rover.messages import ANY
 from rover.operator import COMPLETE, In, Operator, RunOutcome
 
 RESULTS_METADATA = "rover.results"
 """the metadata record that marks an MCAP file as a run's recording, which a later run may replace"""
+DATASET_METADATA = (SETUP_METADATA, PROVENANCE_METADATA, RECORD_METADATA)
+"""records a dataset carries (simulate, convert, record write them): never a run's recording"""
 
 
 def check_replaceable(path: Path) -> None:
     """BadInput unless the file is absent or an earlier run's: a recording (its `rover.results`
-    record), or a file the folder's run.json lists as that run's. Anything else there (a dataset,
-    the run's own input, a file of the user's) a run's results must never replace (issue 43)."""
+    record), a file the folder's run.json lists as that run's, or, in a folder with a run.json, an
+    MCAP file with no dataset's records (a recording of a Rover from before the `rover.results`
+    record). Anything else there (a dataset, the run's own input, a file of the user's) a run's
+    results must never replace (issue 43)."""
     if not path.exists():
         return
-    earlier = read_run_files(path.parent)
-    if path.name in earlier:
+    run_folder = (path.parent / RUN_FILE).is_file()
+    if path.name in read_run_files(path.parent):
         return
     try:
         with BagReader(path) as bag:
-            if RESULTS_METADATA in bag.metadata():
-                return
+            metadata = bag.metadata()
     except BadInput:
-        pass  # not a readable MCAP file: not a recording either
+        metadata = None  # not a readable MCAP file: not a recording either
+    if metadata is not None and (
+        RESULTS_METADATA in metadata or (run_folder and not any(name in metadata for name in DATASET_METADATA))
+    ):
+        return
     raise BadInput(
         f"{path}: this run would replace it, and no earlier run wrote it (a dataset? this run's input?): "
         "give the run another --output, or move the file away"

@@ -10,6 +10,7 @@ from rosbags.highlevel import AnyReader
 
 from rover.drivers.recorder import Recorder, RecorderParams
 from rover.errors import BadInput
+from rover.formats.bag import BagWriter
 from rover.messages import Raw, header, make, serialize
 from rover.operator import COMPLETE, RunOutcome
 
@@ -92,6 +93,26 @@ def test_a_file_no_earlier_run_wrote_is_never_replaced(tmp_path):
     rec.close()
     rec.report(COMPLETE)
     assert read_bag(tmp_path / "results.mcap") == []
+
+
+def test_an_older_runs_recording_is_replaced_and_a_dataset_beside_a_run_json_is_not(tmp_path):
+    """In a run's folder (it has a run.json), an MCAP file without the `rover.results` record is an
+    older Rover's recording when it carries no dataset's records, and is replaced; a dataset (its
+    `rover.setup` record) is refused, the file as it was."""
+    (tmp_path / "run.json").write_text('{"status": "complete"}')
+    with BagWriter(tmp_path / "results.mcap") as bag:  # a recording, as written before the record
+        bag.write("/imu", imu(0), T0_NS)
+    rec = Recorder(RecorderParams(out=str(tmp_path)))
+    rec.start()
+    rec.close()
+    rec.report(COMPLETE)
+    assert read_bag(tmp_path / "results.mcap") == []
+    with BagWriter(tmp_path / "results.mcap", metadata={"rover.setup": {"yaml": "tags: []"}}) as bag:
+        bag.write("/imu", imu(0), T0_NS)
+    before = (tmp_path / "results.mcap").read_bytes()
+    with pytest.raises(BadInput, match="no earlier run wrote it"):
+        Recorder(RecorderParams(out=str(tmp_path))).start()
+    assert (tmp_path / "results.mcap").read_bytes() == before
 
 
 def test_a_port_mapped_to_no_topic_is_not_recorded(tmp_path):
