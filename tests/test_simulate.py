@@ -150,11 +150,15 @@ def test_cli_round_trip_simulate_info_replay(tmp_path):
     assert run_rover("simulate", "-o", str(out)).returncode == 2, "an existing output is kept"
 
 
-def test_scenario_mistakes_are_reported():
+def test_scenario_mistakes_are_reported(tmp_path):
     with pytest.raises(BadInput, match="unknown scenario 'papr'; did you mean 'paper'"):
         load_scenario("papr")
-    with pytest.raises(SpecError, match="unknown key 'sped_m_s' in trajectory; did you mean 'speed_m_s'"):
+    with pytest.raises(BadInput, match="--set trajectory.sped_m_s: no key 'sped_m_s' in section 'trajectory'; did"):
         load_scenario("paper", {"trajectory.sped_m_s": "1"})
+    mine = tmp_path / "mine.yaml"  # in a scenario file: the file's line
+    mine.write_text("trajectory:\n  sped_m_s: 1\n")
+    with pytest.raises(SpecError, match="unknown key 'sped_m_s' in trajectory; did you mean 'speed_m_s'"):
+        load_scenario(str(mine))
     with pytest.raises(SpecError, match="receiver.range_m: expected float"):
         load_scenario("paper", {"receiver.range_m": "far"})
 
