@@ -63,6 +63,22 @@ def _bad_line(path: Path, lines: list[str]) -> str:
     return f"{path}: not a bearings CSV ({HEADER})"
 
 
+def stamps_ns(text: str, seconds: np.ndarray) -> np.ndarray:
+    """The rows' times in integer nanoseconds, digit for digit where written as plain decimals (a
+    float holds 1.7e9 s only to about 120 ns, so a bearing could land on the wrong side of the
+    dataset message it shares a stamp with); as the float rounds them where written otherwise."""
+    column = np.char.strip(np.loadtxt(io.StringIO(text), delimiter=",", skiprows=1, usecols=0, dtype=str, ndmin=1))
+    parts = np.char.partition(column, ".")
+    whole, fraction = parts[:, 0], parts[:, 2]
+    plain = np.char.isdigit(whole) & (np.char.isdigit(fraction) | (np.char.str_len(fraction) == 0))
+    exact = np.zeros(len(column), dtype=np.int64)
+    if plain.any():
+        nanos = np.char.ljust(fraction[plain], 9, "0").astype("U9").astype(np.int64)  # U9: the first 9 digits
+        exact[plain] = whole[plain].astype(np.int64) * 1_000_000_000 + nanos
+    rounded = np.round(seconds * 1e9).astype(np.int64)
+    return np.where(plain, exact, rounded)
+
+
 def read_bearings(path: str | Path) -> Bearings:
     """The file's bearings, sorted by time; BadInput naming the line that breaks the format."""
     path = Path(path)
@@ -84,9 +100,10 @@ def read_bearings(path: str | Path) -> Bearings:
     t, tag, angle, std = rows.T
     if (tag != np.round(tag)).any() or (tag < 0).any() or (tag > MAX_TAG_ID).any() or (std <= 0).any() or (t < 0).any():
         raise BadInput(_bad_line(path, lines))
-    order = np.argsort(t, kind="stable")
+    stamps = stamps_ns(text, t)
+    order = np.argsort(stamps, kind="stable")
     return Bearings(
-        stamp_ns=np.round(t[order] * 1e9).astype(np.int64),
+        stamp_ns=stamps[order],
         tag=tag[order].astype(np.int64),
         angle_rad=np.radians(angle[order]),
         std_rad=np.radians(std[order]),
