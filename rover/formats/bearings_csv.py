@@ -63,11 +63,11 @@ def _bad_line(path: Path, lines: list[str]) -> str:
     return f"{path}: not a bearings CSV ({HEADER})"
 
 
-def stamps_ns(text: str, seconds: np.ndarray) -> np.ndarray:
-    """The rows' times in integer nanoseconds, digit for digit where written as plain decimals (a
-    float holds 1.7e9 s only to about 120 ns, so a bearing could land on the wrong side of the
-    dataset message it shares a stamp with); as the float rounds them where written otherwise."""
-    column = np.char.strip(np.loadtxt(io.StringIO(text), delimiter=",", skiprows=1, usecols=0, dtype=str, ndmin=1))
+def stamps_ns(column: np.ndarray, seconds: np.ndarray) -> np.ndarray:
+    """The rows' times (`column`, as written) in integer nanoseconds, digit for digit where written
+    as plain decimals (a float holds 1.7e9 s only to about 120 ns, so a bearing could land on the
+    wrong side of the dataset message it shares a stamp with); as the float `seconds` rounds them
+    where written otherwise."""
     parts = np.char.partition(column, ".")
     whole, fraction = parts[:, 0], parts[:, 2]
     plain = np.char.isdigit(whole) & (np.char.isdigit(fraction) | (np.char.str_len(fraction) == 0))
@@ -92,7 +92,8 @@ def read_bearings(path: str | Path) -> Bearings:
     if not any(line.strip() for line in lines[1:]):
         raise BadInput(f"{path}: no bearings after the header")
     try:
-        rows = np.loadtxt(io.StringIO(text), delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
+        cells = np.char.strip(np.loadtxt(io.StringIO(text), delimiter=",", skiprows=1, ndmin=2, dtype=str))
+        rows = cells.astype(np.float64)
     except ValueError:
         raise BadInput(_bad_line(path, lines)) from None
     if rows.shape[1] != 4 or not np.isfinite(rows).all():
@@ -100,7 +101,7 @@ def read_bearings(path: str | Path) -> Bearings:
     t, tag, angle, std = rows.T
     if (tag != np.round(tag)).any() or (tag < 0).any() or (tag > MAX_TAG_ID).any() or (std <= 0).any() or (t < 0).any():
         raise BadInput(_bad_line(path, lines))
-    stamps = stamps_ns(text, t)
+    stamps = stamps_ns(cells[:, 0], t)
     order = np.argsort(stamps, kind="stable")
     return Bearings(
         stamp_ns=stamps[order],

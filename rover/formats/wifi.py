@@ -63,8 +63,8 @@ def phase_jump_step_rad(channel: int) -> float:
 
 def freq_channel(freq_hz: float) -> int | None:
     """The 5 GHz channel number centred exactly on `freq_hz`, if any."""
-    number = (freq_hz - 5000e6) / 5e6
-    return int(round(number)) if abs(number - round(number)) < 1e-6 and 32 <= round(number) <= 177 else None
+    channel = channel_of(freq_hz)
+    return channel if channel is not None and channel >= 32 else None
 
 
 def channel_of(freq_hz: float) -> int | None:

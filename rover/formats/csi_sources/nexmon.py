@@ -20,7 +20,7 @@ import numpy as np
 from rover.errors import BadInput
 from rover.formats.csi_sources.frames import CsiFrames
 from rover.formats.csi_sources.walk import record_starts
-from rover.formats.wifi import SUBCARRIER_SPACING_HZ
+from rover.formats.wifi import SUBCARRIER_SPACING_HZ, channel_freq_hz
 
 CHIPS = ("4339", "43455c0", "4358", "4366c0")
 PCAP_MAGIC = {b"\xd4\xc3\xb2\xa1": "<", b"\xa1\xb2\xc3\xd4": ">", b"\x4d\x3c\xb2\xa1": "<", b"\xa1\xb2\x3c\x4d": ">"}
@@ -37,22 +37,12 @@ MAX_BINS = 256
 OLD_MAGIC = 0x11111111
 BANDWIDTHS_HZ = {0x1000: 20e6, 0x1800: 40e6, 0x2000: 80e6}
 """chanspec bandwidth bits (0x3800) -> bandwidth"""
-BAND_5GHZ = 0xC000
 
 
 def looks_like(head: bytes) -> bool:
     """Whether these first bytes start a pcap whose first frame is a Nexmon CSI frame."""
     at = PCAP_HEADER_BYTES + RECORD_HEADER_BYTES + UDP_PAYLOAD_AT
     return head[:4] in PCAP_MAGIC and head[at : at + 2] == b"\x11\x11"
-
-
-def centre_freq_hz(chanspec: np.ndarray) -> np.ndarray:
-    """The centre frequency a Broadcom chanspec names (its channel number is the centre's)."""
-    channel = (chanspec & 0xFF).astype(np.float64)
-    five = (chanspec & BAND_5GHZ) == BAND_5GHZ
-    two = np.where(channel == 14, 2484e6, 2407e6 + 5e6 * channel)
-    freq: np.ndarray = np.where(five, 5000e6 + 5e6 * channel, two)
-    return freq
 
 
 def bandwidth_hz(chanspec: int) -> float | None:
@@ -91,6 +81,10 @@ def read(path: Path, chip: str) -> CsiFrames:
     width = bandwidth_hz(int(chanspec[0]))
     if width is None:
         raise BadInput(f"{path}: frame 1's chanspec 0x{int(chanspec[0]):04x} names no 20, 40 or 80 MHz channel")
+    try:  # the chanspec's channel number is the centre's, of the frames read (the first's channel)
+        centre_hz = channel_freq_hz(int(chanspec[0]) & 0xFF)
+    except ValueError:
+        raise BadInput(f"{path}: frame 1's chanspec 0x{int(chanspec[0]):04x} names no WiFi channel") from None
     nfft = round(width / SUBCARRIER_SPACING_HZ)
     endian = PCAP_MAGIC[data[:4]]
     caplen = buf[offsets[:, None] - 8 + np.arange(4)].copy().view(endian + "u4").ravel().astype(np.int64)
@@ -140,7 +134,7 @@ def read(path: Path, chip: str) -> CsiFrames:
         csi=np.fft.fftshift(csi[keep], axes=1),
         subcarriers=np.arange(-nfft // 2, nfft // 2),
         bandwidth_hz=width,
-        centre_freq_hz=centre_freq_hz(chanspec[k]),
+        centre_freq_hz=np.full(len(k), centre_hz),
         timestamp_ns=stamps[k],
         rssi_db=rssi_chains[keep],
         noise_dbm=np.full(len(keep), np.nan),
