@@ -237,6 +237,21 @@ class Operator:
         """Handle one message; yield or return the messages to send."""
         return ()
 
+    def held_since_ns(self) -> float | None:
+        """The stamp of the earliest input this operator holds without having sent what it makes of
+        it (math.inf: it holds none), for an operator that batches its inputs: the runtime then
+        promises downstream exactly that no output comes before it, instead of `lateness_s` behind
+        the input (None, the default: it does not say). Outputs must not be stamped before the
+        inputs they come from."""
+        return None
+
+    def on_idle(self) -> Iterable[Emit]:
+        """Called while the operator holds inputs (`held_since_ns`) and has nothing more to handle:
+        it may send what it holds, as `csi_decode` decodes its batch (live, frames trickle in; a
+        batch that waited for the next dwell would hold every AoA and pose behind it). Only for
+        holding that is for speed: what it sends must not depend on when it is called."""
+        return ()
+
     def on_end(self) -> Iterable[Emit]:
         """All inputs reached end of stream: flush what is pending."""
         return ()

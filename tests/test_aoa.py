@@ -436,3 +436,26 @@ def test_no_candidate_outside_the_rigs_field_of_view():
     assert len(everywhere) == 3 and any(np.any(np.abs(c) > 60) for c in everywhere)
     for c in candidates(text + "  field_of_view_deg: [-60, 60]\n"):
         assert np.all(np.abs(c) <= 60.5), c
+
+
+def test_the_aoa_says_it_holds_the_burst_under_way_and_stamps_no_aoa_before_it():
+    """`held_since_ns` (what the runtime promises downstream) is the first stamp of the CSI waiting
+    for the rig, then of the burst under way; each AoA is stamped no earlier than its burst's first
+    packet, so the promise holds."""
+    h = synthetic([(0.4, 0.0, 1.0)], packets=1)[0]
+    op = Aoa()
+    assert op.held_since_ns() == math.inf
+    first = burst_packet(h, 1, 0, 149)
+    assert list(op.on_input("csi", first, 1_000_000_000)) == []
+    assert op.held_since_ns() == 1_000_000_000, "CSI waiting for the rig"
+    list(op.on_input("setup", make("rover_msgs/msg/RigSetup", setup_yaml=setup_text()), 0))
+    sent = []
+    for burst, channel in ((1, 149), (2, 153), (3, 149)):
+        for k in range(1 if burst == 1 else 0, 8):
+            packet = burst_packet(h, burst, k, channel)
+            stamp = burst * 1_000_000_000 + k * 1_000_000
+            sent += list(op.on_input("csi", packet, stamp))
+            assert op.held_since_ns() == burst * 1_000_000_000
+    sent += list(op.on_end())
+    assert op.held_since_ns() == math.inf
+    assert len(sent) == 3 and all(e.stamp_ns >= b * 1_000_000_000 for e, b in zip(sent, (1, 2, 3), strict=True))

@@ -297,7 +297,7 @@ print(refused)
 
 
 def test_three_hosts_under_mutual_tls_give_the_same_bytes_as_one_process(lab, tmp_path, dataset, reference):
-    """The default pipeline's real stages (sweep, decode, AoA with its lateness, preintegration, SLAM
+    """The default pipeline's real stages (sweep, decode, AoA holding its bursts, preintegration, SLAM
     merging several inputs) split over three namespaces that reach each other only through the
     bridge, under `security:` (mutual TLS, access control generated from the wiring: a rule too
     narrow would starve a stage), write the same results.mcap, trajectories, tags and metrics,

@@ -554,3 +554,46 @@ def test_with_a_direct_link_losing_the_nuc_does_not_cut_base_from_the_laptop(tmp
         assert "host nuc was lost" in err and "hub" not in err, err
     poses = [m for m in read_bag(out / "results.mcap") if m[0] == "/pose"]
     assert len(poses) == 400, f"{len(poses)} of 400 poses reached the laptop"
+
+
+def test_a_promise_goes_out_as_soon_as_the_operator_is_idle(tmp_path):
+    """An operator holding its latest input (as the AoA holds a burst until the next dwell's frames)
+    promises what it holds (`held_since_ns`), and that promise goes out once it has nothing more to
+    handle, not with its next message: the merge downstream sends each tick before the source's next
+    one. The ticks are 10 ms apart in event time (no heartbeat, which waits for 100 ms of it) and
+    0.5 s apart on the wall clock: without the idle promise each tick waits for the next."""
+    port = free_port()
+    pipeline = tmp_path / "held.yaml"
+    pipeline.write_text(f"""\
+name: held
+hosts:
+  robot: {{listen: ["tcp/127.0.0.1:{port}"]}}
+operators:
+  tick:  {{uses: toyops.Ticker, host: robot, params: {{rate_hz: 2, stamp_step_s: 0.01, count: 8, delay_s: 1}}}}
+  pairs: {{uses: toyops.Pairs, host: robot, inputs: {{imu: tick/imu}}}}
+  merge: {{uses: toyops.Merge, host: robot, inputs: {{a: tick/imu, b: pairs/out}}}}
+""")
+    arrivals: list[tuple[str, int]] = []
+    lock = threading.Lock()
+
+    def seen(sample: zenoh.Sample) -> None:
+        att = sample.attachment
+        kind, stamp, _mark = codec.read_attachment(att.to_bytes() if att is not None else None)
+        if kind == codec.Kind.DATA:
+            with lock:
+                arrivals.append((str(sample.key_expr), stamp))
+
+    proc = popen_rover("run", str(pipeline), "--host", "robot")
+    with client(port) as watcher:
+        subscribers = [watcher.declare_subscriber(f"rover/held/{key}", seen) for key in ("tick/imu", "merge/out")]
+        _out, err = proc.communicate(timeout=60)
+        for subscriber in subscribers:
+            subscriber.undeclare()
+    assert proc.returncode == 0, err
+    ticks = [stamp for key, stamp in arrivals if key == "rover/held/tick/imu"]
+    assert len(ticks) >= 4, f"the watcher saw {len(ticks)} ticks"
+    for stamp, after in zip(ticks, ticks[1:], strict=False):
+        merged = ("rover/held/merge/out", stamp)
+        assert merged in arrivals and arrivals.index(merged) < arrivals.index(("rover/held/tick/imu", after)), (
+            f"the tick stamped {stamp} left the merge only after the next tick: {arrivals}"
+        )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -127,6 +128,8 @@ class TickerParams:
     """Messages to send before ending; 0 = until stopped."""
     delay_s: float = 0.0
     """Wall-clock time before the first message, as a driver waiting for its device."""
+    stamp_step_s: float = 0.0
+    """Event time between two messages (0: each is stamped with the wall clock)."""
 
 
 class Ticker(Source):
@@ -142,13 +145,34 @@ class Ticker(Source):
         n = 0
         if stop.wait(self.params.delay_s):
             return
+        start = time.time_ns()
         while not stop.is_set() and (self.params.count == 0 or n < self.params.count):
-            now = time.time_ns()
+            now = start + round(n * self.params.stamp_step_s * 1e9) if self.params.stamp_step_s else time.time_ns()
             gyro = make("geometry_msgs/msg/Vector3", z=0.1 * n)
             yield Emit("imu", make("sensor_msgs/msg/Imu", header=header(now, "imu_link"), angular_velocity=gyro))
             yield Watermark(now)
             n += 1
             stop.wait(period)
+
+
+class Pairs(Operator):
+    """Sends each message once the next one arrived, as the AoA closes a burst when the next
+    dwell's frames come; says what it holds (`held_since_ns`)."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    outputs = {"out": Out("sensor_msgs/msg/Imu")}
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        self.held: tuple[object, int] | None = None
+
+    def held_since_ns(self) -> float:
+        return self.held[1] if self.held else math.inf
+
+    def on_input(self, port, msg, stamp_ns):
+        if self.held is not None:
+            yield Emit("out", self.held[0], self.held[1])
+        self.held = (msg, stamp_ns)
 
 
 class Merge(Operator):

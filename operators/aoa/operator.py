@@ -152,7 +152,6 @@ class Aoa(Operator):
     inputs = {"csi": In("rover_msgs/msg/Csi"), "setup": In("rover_msgs/msg/RigSetup")}
     outputs = {"aoa": Out("rover_msgs/msg/Aoa")}
     Params = AoaParams
-    lateness_s = 1.0
 
     def __init__(self, params: AoaParams | None = None):
         super().__init__(params)
@@ -209,6 +208,12 @@ class Aoa(Operator):
                 center_hz=center_hz,
             )
         return self.estimators[channel, plan]
+
+    def held_since_ns(self) -> float:
+        """The first stamp of the CSI held (waiting for the rig, or the burst under way): an AoA is
+        stamped at its burst's median packet, so none comes before it."""
+        held = [held[0][1] for held in (self.waiting, self.burst) if held]
+        return min(held, default=math.inf)
 
     def _add(self, msg: Any, stamp_ns: int):
         if self.burst:

@@ -103,6 +103,8 @@ class Output:
         )
         self.last_ns: float = -INF
         self.mark_ns: int = -(2**63)
+        self.sent_mark_ns: int = self.mark_ns
+        """the promise the last message on this port carried"""
         self.count = 0
         self.credits: Credits | None = None
         """flow control toward consumers on other hosts (None: none, or a live stream that must not wait)"""
@@ -113,6 +115,7 @@ class Output:
             self.credits.wait(self.count)
         self.publisher.put(payload, attachment=codec.attachment(codec.Kind.DATA, stamp, self.mark_ns))
         self.last_ns = max(self.last_ns, stamp)
+        self.sent_mark_ns = self.mark_ns
 
     def promise(self, mark: int) -> None:
         """Nothing sent from now on is stamped before `mark`; rides on the next sample."""
@@ -121,12 +124,23 @@ class Output:
     def heartbeat(self) -> None:
         """Send the promise on its own when this port has been silent for a while of event time."""
         if self.mark_ns - self.last_ns >= WATERMARK_INTERVAL_NS:
-            self.publisher.put(
-                b"",
-                encoding=codec.control_encoding(),
-                attachment=codec.attachment(codec.Kind.WATERMARK, self.mark_ns, self.mark_ns),
-            )
-            self.last_ns = self.mark_ns
+            self._send_mark()
+
+    def idle(self) -> None:
+        """Send the promise on its own if it moved on since the last message: the operator has
+        nothing more to handle, and a consumer may be waiting for this promise to go on (a live
+        pose waits for the AoAs' promise to pass its IMU epoch)."""
+        if self.mark_ns > self.sent_mark_ns:
+            self._send_mark()
+
+    def _send_mark(self) -> None:
+        self.publisher.put(
+            b"",
+            encoding=codec.control_encoding(),
+            attachment=codec.attachment(codec.Kind.WATERMARK, self.mark_ns, self.mark_ns),
+        )
+        self.last_ns = max(self.last_ns, self.mark_ns)
+        self.sent_mark_ns = self.mark_ns
 
     def end(self, cut: bool) -> None:
         """End of stream; `cut` when it ends before the end of the input (a stop, a lost host upstream)."""
@@ -399,13 +413,17 @@ class OperatorTask(Task):
         while not merger.finished:
             if self.abort.is_set():
                 return
-            waiting = time.perf_counter_ns()
             try:
-                port, delivery = self.inbox.get(timeout=POLL_S)
+                port, delivery = self.inbox.get(timeout=0.0)
             except queue.Empty:
-                continue
-            finally:
-                self.clock.idle += time.perf_counter_ns() - waiting
+                self.idle()
+                waiting = time.perf_counter_ns()
+                try:
+                    port, delivery = self.inbox.get(timeout=POLL_S)
+                except queue.Empty:
+                    continue
+                finally:
+                    self.clock.idle += time.perf_counter_ns() - waiting
             if self.acks is not None and not codec.is_control(delivery.attachment):
                 self.acks.took(port)
             self._accept(port, delivery)
@@ -415,8 +433,24 @@ class OperatorTask(Task):
                 self.handle(functools.partial(op.on_input, port, msg, stamp), stamp)
                 self.handled_ns = stamp
             self.reached_ns = merger.safe_time()
-            self.advance(self.reached_ns - op.lateness_s * 1e9)
+            self.promise()
         self.handle(op.on_end, self.last_stamp())
+
+    def promise(self) -> None:
+        """Promise on every output what the operator can still send: from what it holds, when it
+        says (`held_since_ns`), else `lateness_s` behind what its inputs reached."""
+        held = self.op.held_since_ns()
+        self.advance(self.reached_ns - self.op.lateness_s * 1e9 if held is None else min(self.reached_ns, held))
+
+    def idle(self) -> None:
+        """Nothing to handle: an operator holding inputs may send them (`on_idle`), and promises that
+        moved on since their port's last message go out on their own."""
+        held = self.op.held_since_ns()
+        if held is not None and held != INF:
+            self.handle(self.op.on_idle, self.last_stamp())
+            self.promise()
+        for out in self.outputs.values():
+            out.idle()
 
     def last_stamp(self) -> int:
         """The latest stamp sent on any output, for what `on_end` emits without one (0 before any)."""
