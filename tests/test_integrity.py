@@ -14,13 +14,17 @@ from rover.geometry import parallax_deg
 from rover.operators.slam.integrity import (
     CELL_M,
     CELLS_M,
+    MAX_VARIANCE_FACTOR,
+    MAX_WEIGHT,
     MIN_CELLS,
     MIN_PARALLAX_DEG,
     MIN_VERDICT_BEARINGS,
+    WEIGHT_STEP,
     TagIntegrity,
     disagreeing,
     inflation,
     jackknife_covariance,
+    jackknife_spread,
     small_sample_factor,
     variance_factor,
 )
@@ -283,3 +287,55 @@ def test_the_variance_factor_says_how_much_wider_the_bearings_scatter_than_state
     stated = rng.normal(0.0, math.radians(2.0), len(robot))
     assert variance_factor(TAG, robot, bearings(robot, TAG, stated), burst, 1.0) == pytest.approx(1.0, rel=0.22)
     assert variance_factor(TAG, robot[:0], np.zeros(0), np.zeros(0), 4.0) == 0.0
+
+
+def test_a_tag_whose_bearings_err_alike_is_weighed_down_by_what_its_jackknife_says():
+    """Offsets shared by 1 m cells: the jackknife's spread is several times the covariance that
+    takes the bearings as independent. Judged again and again with the window's covariance at the
+    weight it set (the window's bearings' variance times `weight`), the weight climbs by at most
+    WEIGHT_STEP a verdict and settles where that covariance covers the jackknives' spreads (at
+    every size of CELLS_M); with independent errors it stays about 1; it is never below 1, nor
+    above MAX_WEIGHT."""
+
+    robot = rectangle()
+    stds = np.full(len(robot), math.radians(2.0))
+    cells = np.unique(np.floor(robot / CELL_M).astype(int), axis=0, return_inverse=True)[1].ravel()
+    rng = np.random.default_rng(7)
+    shared = rng.normal(0.0, math.radians(3.0), cells.max() + 1)[cells]
+    for offset, settles in ((shared, True), (np.zeros(len(robot)), False)):
+        angles = bearings(robot, TAG, offset + rng.normal(0.0, math.radians(1.0), len(robot)))
+        estimate = fit(robot, angles, stds, TAG)
+        naive = naive_covariance(estimate, robot, stds)
+        spreads = [jackknife_spread(estimate, robot, angles, stds, HUBER, cell) for cell in CELLS_M]
+        assert all(s is not None for s in spreads)
+        target = max(np.linalg.eigvals(np.linalg.solve(naive, s[0])).real.max() for s in spreads if s is not None)
+        trust = TagIntegrity()
+        trust.start(0, robot, angles, stds)
+        weights = []
+        for _ in range(12):
+            trust.due[0] = 0
+            trust.judge(0, estimate, naive * trust.weight.get(0, 1.0), NOWHERE, HUBER, 1.0)
+            weights.append(trust.weight[0])
+        steps = np.diff([1.0, *weights])
+        assert np.all(np.array(weights) >= 1.0) and np.all(np.array(weights) <= MAX_WEIGHT)
+        assert np.all(np.array(weights[1:]) / np.array(weights[:-1]) <= WEIGHT_STEP + 1e-9)
+        if settles:
+            assert target > WEIGHT_STEP, "the shared offsets make the jackknife more than one step above the naive"
+            assert weights[0] == pytest.approx(WEIGHT_STEP) and steps[0] > 0
+            assert weights[-1] == pytest.approx(target, rel=1e-6)
+        else:
+            assert weights[-1] == pytest.approx(max(1.0, min(target, WEIGHT_STEP)), rel=1e-6) and target < 2.0
+        np.testing.assert_allclose(trust.std_factor(np.array([0, 0, 1])), [math.sqrt(weights[-1])] * 2 + [1.0])
+
+
+def test_a_tag_whose_place_does_not_explain_its_bearings_is_not_weighed_down():
+    """Half its bearings beyond 3 of their stds (a variance factor above MAX_VARIANCE_FACTOR): the
+    estimate is wrong, not its covariance, and the bearings that would move it keep their weight."""
+    robot = rectangle()
+    stds = np.full(len(robot), math.radians(1.0))
+    angles = bearings(robot, TAG, np.zeros(len(robot)))
+    wrong = TAG + np.array([1.5, -1.0])
+    trust = TagIntegrity()
+    trust.start(0, robot, angles, stds)
+    trust.judge(0, wrong, np.eye(2) * 1e-6, NOWHERE, HUBER, 1.0)
+    assert trust.factor[0] > MAX_VARIANCE_FACTOR and trust.weight.get(0, 1.0) == 1.0

@@ -25,6 +25,16 @@ the estimates beyond 3 sigma of the 1 m jackknife's scaling, none of both's
 estimates -> 23%, and `clutter` seed 2's NLOS tag 99% -> 53%. It cannot see a bias every view
 shares (a scatterer beside the tag shifts it alike from everywhere).
 
+A covariance too small by k means the window weighs the tag's bearings k times more than they are
+worth, and not only for the tag: every robot pose they were taken from is pulled by errors it
+takes as independent (a cluttered room's bearings made the robot 1.4-1.8 times worse than its
+odometry alone). So the jackknife's own estimate (without c) also sets the tag's `weight`, what
+the window multiplies its bearings' variance by, moved at each jackknife toward the value at which
+the window's covariance covers it (at most WEIGHT_STEP at a time, between 1 and MAX_WEIGHT), and
+the tag's part of the prior, which its earlier bearings built at the old weight, is relaxed by the
+same step. A tag whose place does not explain its bearings keeps its weight: there the estimate is
+wrong, not its covariance, and its bearings must stay strong enough to move it.
+
 Nor can it see bearings that scatter more than their bursts say all over (an NLOS tag: the wall's
 image blends into every burst): so the published covariance is also at least the window's times
 the variance factor, the square of the robust spread of the residuals in the bursts' own stds,
@@ -76,6 +86,13 @@ MIN_PARALLAX_DEG = 10.0
 (the search's `min_parallax_deg`)"""
 HISTORY_BEARINGS = 4000
 """bearings kept per tag (the latest)"""
+MAX_WEIGHT = 100.0
+"""the most a tag's bearings' variance in the window is multiplied by (`TagIntegrity.weight`): ten
+times their std, bearings that err alike a hundred at a time"""
+WEIGHT_STEP = 4.0
+"""the most one jackknife multiplies or divides a tag's weight by: a jackknife of an estimate on
+its way to the right place is itself far off, and a tag weighed down at once has nothing left to
+get there with"""
 
 
 def residuals_rad(position: np.ndarray, robot: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -94,9 +111,24 @@ def jackknife_covariance(
     cell_m: float = CELL_M,
 ) -> np.ndarray | None:
     """The block jackknife covariance (2, 2) of a tag at `position` from its bearings grouped by
-    square cells of side `cell_m`, scaled by small_sample_factor: robot positions (n, 2), world
-    angles (n,) and stds (n,); None while they span fewer than MIN_CELLS cells. Each bearing keeps
-    the Huber weight it has at `position`."""
+    square cells of side `cell_m` (`jackknife_spread`), scaled by small_sample_factor so that 3
+    sigma of it covers; None while they span fewer than MIN_CELLS cells."""
+    spread = jackknife_spread(position, robot, angles, stds, huber_sigma, cell_m)
+    return None if spread is None else spread[0] * small_sample_factor(spread[1])
+
+
+def jackknife_spread(
+    position: np.ndarray,
+    robot: np.ndarray,
+    angles: np.ndarray,
+    stds: np.ndarray,
+    huber_sigma: float,
+    cell_m: float = CELL_M,
+) -> tuple[np.ndarray, int] | None:
+    """The block jackknife's estimate of the covariance (2, 2) of a tag at `position`, and the
+    number of cells it left out in turn: robot positions (n, 2), world angles (n,) and stds (n,),
+    grouped by square cells of side `cell_m`; None while they span fewer than MIN_CELLS cells.
+    Each bearing keeps the Huber weight it has at `position`."""
     cells = np.floor(robot / cell_m).astype(np.int64)
     _, block = np.unique(cells, axis=0, return_inverse=True)
     block = block.ravel()
@@ -116,9 +148,9 @@ def jackknife_covariance(
         try:
             q = q - np.linalg.solve(info, grad[..., None])[..., 0]
         except np.linalg.LinAlgError:
-            return np.full((2, 2), np.inf)  # leaving a cell out leaves the tag unconstrained
+            return np.full((2, 2), np.inf), count  # leaving a cell out leaves the tag unconstrained
     dev = q - q.mean(axis=0)
-    return (count - 1) / count * dev.T @ dev * small_sample_factor(count)
+    return (count - 1) / count * dev.T @ dev, count
 
 
 def variance_factor(
@@ -160,17 +192,22 @@ def disagreeing(
     return again
 
 
-def inflation(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
-    """The least k >= 1 with k covariance >= jackknife (infinite when the jackknife is)."""
+def cover_ratio(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
+    """The least k with k covariance >= jackknife, below 1 when the covariance already covers it
+    (1 without a jackknife, infinite when the jackknife is)."""
     if jackknife is None:
         return 1.0
     if not np.all(np.isfinite(jackknife)):
         return float("inf")
     try:
-        k = np.linalg.eigvals(np.linalg.solve(covariance, jackknife)).real.max()
+        return float(np.linalg.eigvals(np.linalg.solve(covariance, jackknife)).real.max())
     except np.linalg.LinAlgError:
         return 1.0
-    return max(1.0, float(k))
+
+
+def inflation(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
+    """The least k >= 1 with k covariance >= jackknife (infinite when the jackknife is)."""
+    return max(1.0, cover_ratio(covariance, jackknife))
 
 
 @dataclass
@@ -192,6 +229,10 @@ class TagIntegrity:
     """per slot: the spread (deg) of its judged bearings' directions seen from its estimate"""
     scale: dict[int, float] = field(default_factory=dict)
     """per slot: the factor its window covariance is published with (`judge`)"""
+    weight: dict[int, float] = field(default_factory=dict)
+    """per slot: how much the window multiplies its bearings' variance, so that its covariance is
+    the jackknives' (`judge`): bearings that err alike carry that much less information, and the
+    robot's poses as well as the tag's place must weigh them so"""
 
     def start(self, tag_slot: int, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray) -> None:
         """A tag found by the search: its bearings that already left the window, as the search chose
@@ -227,16 +268,29 @@ class TagIntegrity:
                 self.due[tag_slot] = MIN_VERDICT_BEARINGS - len(rows)
             else:
                 robot, angles, stds = rows[:, :2], rows[:, 2], rows[:, 3]
-                self.jackknife[tag_slot] = [
-                    jackknife_covariance(position, robot, angles, stds, huber_sigma, cell_m) for cell_m in CELLS_M
-                ]
+                spreads = [jackknife_spread(position, robot, angles, stds, huber_sigma, cell_m) for cell_m in CELLS_M]
+                self.jackknife[tag_slot] = [None if j is None else j[0] * small_sample_factor(j[1]) for j in spreads]
                 self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
+                self._reweigh(tag_slot, covariance, [None if j is None else j[0] for j in spreads])
                 self.judged_xy[tag_slot] = robot
                 self.due[tag_slot] = EVERY_BEARINGS
         if tag_slot in self.judged_xy:
             self.parallax[tag_slot] = parallax_deg(position, np.concatenate([self.judged_xy[tag_slot], window_xy]))
         k = max((inflation(covariance, j) for j in self.jackknife.get(tag_slot, [])), default=1.0)
         self.scale[tag_slot] = max(k, self.factor.get(tag_slot, 0.0))
+
+    def _reweigh(self, tag_slot: int, covariance: np.ndarray, spreads: list[np.ndarray | None]) -> None:
+        """Move the tag's `weight` toward what makes the window's covariance cover the jackknives'
+        estimates (`spreads`, not scaled to cover; a size too few cells span counts as covered),
+        by at most WEIGHT_STEP; not while its place does not explain its bearings (then the
+        estimate is wrong, not its covariance) or a jackknife is unbounded."""
+        if self.factor[tag_slot] > MAX_VARIANCE_FACTOR:
+            return
+        ratio = max((cover_ratio(covariance, j) for j in spreads), default=1.0)
+        if not math.isfinite(ratio):
+            return
+        step = min(max(ratio, 1 / WEIGHT_STEP), WEIGHT_STEP)
+        self.weight[tag_slot] = min(max(self.weight.get(tag_slot, 1.0) * step, 1.0), MAX_WEIGHT)
 
     def verdict(self, tag_slot: int) -> str | None:
         """Why the tag may not be published as localized whatever its covariance (None: it may)."""
@@ -251,6 +305,16 @@ class TagIntegrity:
         if self.jackknife[tag_slot][0] is None:
             return f"its judged bearings were taken from fewer than {MIN_CELLS} places ({CELL_M:g} m cells)"
         return None
+
+    def std_factor(self, tag_slots: np.ndarray) -> np.ndarray:
+        """What the window multiplies the std of bearings of these tag slots by: the square root of
+        their `weight`."""
+        slots = np.asarray(tag_slots, dtype=int)
+        per_slot = np.ones(int(slots.max(initial=-1)) + 1)
+        for t, w in self.weight.items():
+            if t < len(per_slot):
+                per_slot[t] = w
+        return np.sqrt(per_slot[slots])
 
     def scaled(self, covariances: np.ndarray) -> np.ndarray:
         """The tags' covariances (tags, 2, 2) as published: each scaled by its `scale`."""

@@ -298,7 +298,7 @@ class SlidingWindow:
         std = np.ones(shape.rows)
         tag[b.slot] = b.tag
         bearing[b.slot] = np.stack([np.cos(angle), np.sin(angle)], axis=1)
-        std[b.slot] = b.stds[picked]
+        std[b.slot] = b.stds[picked] * self.integrity.std_factor(b.tag)
         active = np.array(self.active + [False], bool)
         return np.repeat(np.arange(shape.epochs), shape.slots), tag, bearing, std, (tag >= 0) & active[tag]
 
@@ -562,7 +562,10 @@ class SlidingWindow:
         for t, cov in enumerate(self.tag_covariance):
             if self.active[t]:
                 seen_from = xy[epoch[filled & (tag == t)]]
+                weight = self.integrity.weight.get(t, 1.0)
                 self.integrity.judge(t, self.x[self.shape.tag(t)], cov, seen_from, s.huber_sigma, s.aoa_std_scale)
+                if self.integrity.weight.get(t, 1.0) > weight:  # what its bearings told the prior counts less too
+                    self.prior = self._prior.relaxed(prior_tag(t), weight / self.integrity.weight[t])
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`); worked
@@ -587,7 +590,8 @@ class SlidingWindow:
             if jump >= 0:
                 self.jumps.learn(int(old.tags[j]), jump)
             self.integrity.add(int(old.tags[j]), x[0:2], old.candidates[j, old.choice[j]], old.std[j])
-        leaving = Leaving(old.velocity_info, old.velocity_linear, old.tags[use], old.bearing[use], old.std[use])
+        std = old.std[use] * self.integrity.std_factor(old.tags[use])
+        leaving = Leaving(old.velocity_info, old.velocity_linear, old.tags[use], old.bearing[use], std)
         self.prior = marginalize_oldest(self._prior, own, leaving, edge, self.settings, self.accel_biases, self.scale)
         self.finals.append((old.stamp_ns, float(x[0]), float(x[1]), old.yaw))
         self.finder.final_xy[old.stamp_ns] = x[0:2].copy()
