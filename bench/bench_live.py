@@ -25,35 +25,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 import yaml  # noqa: E402
-from live_session import live_scenario, run_session  # noqa: E402
-from netns import ADDRESSES, Lab, rover_env  # noqa: E402
+from live_session import live_scenario, observe, read_arrivals, run_session  # noqa: E402
+from netns import Lab  # noqa: E402
 
 from rover.formats.bag import BagReader  # noqa: E402
 
 LIVE_S = 60.0
 SEED = 1
-PORT = 7450
-OBSERVER = """
-import sys, time, zenoh
-from rover.transport import codec
-endpoint, out, *keys = sys.argv[1:]
-config = zenoh.Config()
-config.insert_json5("mode", '"client"')
-config.insert_json5("connect/endpoints", '["' + endpoint + '"]')
-config.insert_json5("scouting/multicast/enabled", "false")
-session = zenoh.open(config)
-sink = open(out, "a", buffering=1)
-def seen(sample):
-    now = time.time_ns()
-    raw = sample.attachment.to_bytes() if sample.attachment else None
-    kind, stamp, _mark = codec.read_attachment(raw)
-    if kind == codec.Kind.DATA:
-        sink.write(f"{sample.key_expr} {now} {stamp}\\n")
-subscribers = [session.declare_subscriber(key, seen) for key in keys]
-print("ready", flush=True)
-while True:
-    time.sleep(1)
-"""
 
 
 def percentiles(values: list[float]) -> dict[str, float]:
@@ -84,29 +62,14 @@ def main() -> int:
         subprocess.run([*simulate, "--seed", str(SEED), "-o", str(dataset)], check=True)
         arrivals = work / "arrivals.txt"
 
-        def observe(lab: Lab, _pipeline: Path) -> None:
-            keys = ["rover/live/aoa/aoa", "rover/live/slam/pose"]
-            endpoint = f"tcp/{ADDRESSES['nuc']}:{PORT}"
-            proc = lab.spawn(
-                "laptop",
-                sys.executable,
-                "-c",
-                OBSERVER,
-                endpoint,
-                str(arrivals),
-                *keys,
-                env=rover_env(),
-                stdout=subprocess.PIPE,
-                text=True,
-            )
-            assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        def watch(lab: Lab, _pipeline: Path) -> None:
+            observe(lab, arrivals)
 
-        session = run_session(work, dataset, args.seconds, during=observe)
+        session = run_session(work, dataset, args.seconds, during=watch)
         statuses = {host: status for host, (status, _err) in session.ended.items()}
         latency: dict[str, list[float]] = {"aoa": [], "pose": []}
-        for line in arrivals.read_text().splitlines():
-            key, arrived, stamp = line.split()
-            latency["aoa" if key.endswith("/aoa") else "pose"].append((int(arrived) - int(stamp)) / 1e9)
+        for key, arrived, stamp in read_arrivals(arrivals):
+            latency["aoa" if key.endswith("/aoa") else "pose"].append((arrived - stamp) / 1e9)
         with BagReader(session.recording) as bag:
             summary = bag.summary()
             record = yaml.safe_load(bag.metadata()["rover.record"]["yaml"])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,13 +25,38 @@ from create2_device import Create2Device
 from helpers import wait_until
 from live_feed import CsiLogFeeder, Recorded, tune_command
 from mip_device import MipDevice
-from netns import ADDRESSES, POLL_S, Lab
+from netns import ADDRESSES, POLL_S, Lab, rover_env
 
 ROOT = Path(__file__).resolve().parent.parent
 IMU_DECIMATION = 5
 """500 Hz / 5: the 100 Hz of pipelines/live.yaml's `rate_hz`"""
 START_TIMEOUT_S = 60.0
 END_TIMEOUT_S = 60.0
+LIVE_PORT = 7450
+"""the NUC's port in pipelines/live.yaml"""
+OBSERVED_KEYS = ("rover/live/aoa/aoa", "rover/live/slam/pose")
+"""what `observe` watches: the AoAs computed on the NUC, the poses solved on the laptop"""
+OBSERVER = """
+import sys, time, zenoh
+from rover.transport import codec
+endpoint, out, *keys = sys.argv[1:]
+config = zenoh.Config()
+config.insert_json5("mode", '"client"')
+config.insert_json5("connect/endpoints", '["' + endpoint + '"]')
+config.insert_json5("scouting/multicast/enabled", "false")
+session = zenoh.open(config)
+sink = open(out, "a", buffering=1)
+def seen(sample):
+    now = time.time_ns()
+    raw = sample.attachment.to_bytes() if sample.attachment else None
+    kind, stamp, _mark = codec.read_attachment(raw)
+    if kind == codec.Kind.DATA:
+        sink.write(f"{sample.key_expr} {now} {stamp}\\n")
+subscribers = [session.declare_subscriber(key, seen) for key in keys]
+print("ready", flush=True)
+while True:
+    time.sleep(1)
+"""
 
 
 def live_scenario(folder: Path) -> Path:
@@ -125,3 +151,28 @@ def run_session(
 def _finish(proc: subprocess.Popen) -> tuple[int, str]:
     _out, err = proc.communicate(timeout=END_TIMEOUT_S)
     return proc.returncode, err
+
+
+def observe(lab: Lab, arrivals: Path, keys: tuple[str, ...] = OBSERVED_KEYS) -> None:
+    """An observer on the laptop's machine writing each data sample of `keys` to `arrivals` as it
+    arrives: "KEY ARRIVAL_NS STAMP_NS" (one kernel clock for all namespaces); returns once it listens."""
+    endpoint = f"tcp/{ADDRESSES['nuc']}:{LIVE_PORT}"
+    proc = lab.spawn(
+        "laptop",
+        sys.executable,
+        "-c",
+        OBSERVER,
+        endpoint,
+        str(arrivals),
+        *keys,
+        env=rover_env(),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+
+
+def read_arrivals(arrivals: Path) -> list[tuple[str, int, int]]:
+    """What `observe` wrote: (key, arrival ns, stamp ns) in arrival order."""
+    rows = (line.split() for line in arrivals.read_text().splitlines())
+    return [(key, int(arrived), int(stamp)) for key, arrived, stamp in rows]

@@ -1,13 +1,14 @@
 """The live robot end to end without hardware (tests/live_session.py): `pipelines/live.yaml` on three
 hosts for 30 s of real time with emulated devices, recorded on the NUC with `rover record`; the
-recording replayed in one process gives the live run's trajectory and tags."""
+recording replayed in one process gives the live run's trajectory and tags, and each burst's pose
+left the laptop before the next dwell's burst was complete."""
 
 from __future__ import annotations
 
 import pytest
 import yaml
 from helpers import run_rover
-from live_session import live_scenario, run_session
+from live_session import live_scenario, observe, read_arrivals, run_session
 from netns import require_root
 
 from rover.formats.bag import BagReader
@@ -20,7 +21,10 @@ LIVE_S = 30.0
 
 def test_a_live_session_on_three_hosts_is_recorded_and_replays_to_the_same_trajectory(tmp_path, simulated):
     require_root()
-    session = run_session(tmp_path, simulated(str(live_scenario(tmp_path)), 1), LIVE_S)
+    arrivals = tmp_path / "arrivals.txt"
+    session = run_session(
+        tmp_path, simulated(str(live_scenario(tmp_path)), 1), LIVE_S, during=lambda lab, _p: observe(lab, arrivals)
+    )
     for host, (_status, err) in session.ended.items():
         assert "Traceback" not in err, (host, err)
     statuses = {host: status for host, (status, _err) in session.ended.items()}
@@ -43,6 +47,22 @@ def test_a_live_session_on_three_hosts_is_recorded_and_replays_to_the_same_traje
     assert 0.9 * sent["imu"] <= counts["/imu/data"] <= sent["imu"], (counts, sent)
     assert 0.9 * sent["odom"] <= counts["/odom"] <= sent["odom"], (counts, sent)
     assert 0.9 * sent["csi"] <= counts["/csi"] <= sent["csi"], (counts, sent)
+
+    # the pose of each burst leaves the laptop before the next dwell's burst is complete (its AoA
+    # sent: the hop after it closed it), in the order an observer on the laptop's machine sees them.
+    # When a burst had to wait for the next one (promises a fixed lateness behind, riding on the next
+    # message), every pose came after the next AoA; now one may only when a starved moment of the two
+    # cores (three hosts, three device emulators) delays an AoA until the next one is close behind.
+    seen = read_arrivals(arrivals)
+    first_pose = min(stamp for key, _, stamp in seen if key.endswith("/pose"))  # once the IMU's still start is over
+    aoas = sorted({stamp for key, _, stamp in seen if key.endswith("/aoa") and stamp >= first_pose})
+    order = {(key.rsplit("/", 1)[1], stamp): k for k, (key, _, stamp) in reversed(list(enumerate(seen)))}
+    late = [
+        s for s, after in zip(aoas, aoas[1:], strict=False) if order.get(("pose", s), len(seen)) > order[("aoa", after)]
+    ]
+    assert len(aoas) > 10 * LIVE_S and len(late) <= 0.01 * len(aoas), (
+        f"{len(late)} of {len(aoas)} poses came after the next burst's AoA"
+    )
 
     replay = tmp_path / "replay"
     run_rover("-q", "run", "--dataset", str(session.recording), "--output", str(replay), check=True, timeout=300)

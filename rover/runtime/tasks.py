@@ -285,8 +285,11 @@ class SourceTask(Task):
             self.clock.handler += time.perf_counter_ns() - start
             if item is None or self.abort.is_set():
                 break
-            if isinstance(item, Watermark):
+            if isinstance(item, Watermark):  # the source waits now: its promise goes out at once
                 clock = max(clock, item.stamp_ns)
+                self.advance(clock)
+                for out in self.outputs.values():
+                    out.idle()
             else:
                 stamp = item.stamp_ns if item.stamp_ns is not None else stamp_ns(item.msg)
                 clock = max(clock, stamp)
