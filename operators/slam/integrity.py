@@ -113,7 +113,12 @@ def jackknife_covariance(
     """The block jackknife covariance (2, 2) of a tag at `position` from its bearings grouped by
     square cells of side `cell_m` (`jackknife_spread`), scaled by small_sample_factor so that 3
     sigma of it covers; None while they span fewer than MIN_CELLS cells."""
-    spread = jackknife_spread(position, robot, angles, stds, huber_sigma, cell_m)
+    return covering(jackknife_spread(position, robot, angles, stds, huber_sigma, cell_m))
+
+
+def covering(spread: tuple[np.ndarray, int] | None) -> np.ndarray | None:
+    """A jackknife's spread and cell count (`jackknife_spread`) as the covariance 3 sigma of which
+    covers: the spread times small_sample_factor."""
     return None if spread is None else spread[0] * small_sample_factor(spread[1])
 
 
@@ -269,7 +274,7 @@ class TagIntegrity:
             else:
                 robot, angles, stds = rows[:, :2], rows[:, 2], rows[:, 3]
                 spreads = [jackknife_spread(position, robot, angles, stds, huber_sigma, cell_m) for cell_m in CELLS_M]
-                self.jackknife[tag_slot] = [None if j is None else j[0] * small_sample_factor(j[1]) for j in spreads]
+                self.jackknife[tag_slot] = [covering(j) for j in spreads]
                 self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
                 self._reweigh(tag_slot, covariance, [None if j is None else j[0] for j in spreads])
                 self.judged_xy[tag_slot] = robot

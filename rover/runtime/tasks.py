@@ -285,11 +285,8 @@ class SourceTask(Task):
             self.clock.handler += time.perf_counter_ns() - start
             if item is None or self.abort.is_set():
                 break
-            if isinstance(item, Watermark):  # the source waits now: its promise goes out at once
+            if isinstance(item, Watermark):
                 clock = max(clock, item.stamp_ns)
-                self.advance(clock)
-                for out in self.outputs.values():
-                    out.idle()
             else:
                 stamp = item.stamp_ns if item.stamp_ns is not None else stamp_ns(item.msg)
                 clock = max(clock, stamp)
@@ -298,6 +295,9 @@ class SourceTask(Task):
                     out.promise(clock)
                 self.publish((item._replace(stamp_ns=stamp),), clock)
             self.advance(clock)
+            if isinstance(item, Watermark):  # the source waits now: its promise goes out at once
+                for out in self.outputs.values():
+                    out.idle()
             self.reached_ns = clock
             if self.stop.is_set():
                 break
