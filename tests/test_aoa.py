@@ -15,7 +15,7 @@ from rover.formats.rig import load_rig, rig_from_text
 from rover.formats.run_dir import load_truth
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, subcarrier_freqs_hz
 from rover.geometry import wrap_angle
-from rover.messages import deserialize, header, make, serialize, stamp_ns
+from rover.messages import deserialize, header, make, stamp_ns
 from rover.operators.aoa.array import ArrayResponse, check_geometry
 from rover.operators.aoa.music import Direction, burst_std, check_energy
 from rover.operators.aoa.operator import QUALITY_AMBIGUOUS, QUALITY_GOOD, Aoa, AoaParams
@@ -459,24 +459,3 @@ def test_the_aoa_says_it_holds_the_burst_under_way_and_stamps_no_aoa_before_it()
     sent += list(op.on_end())
     assert op.held_since_ns() == math.inf
     assert len(sent) == 3 and all(e.stamp_ns >= b * 1_000_000_000 for e, b in zip(sent, (1, 2, 3), strict=True))
-
-
-def test_a_hop_ends_the_burst_under_way():
-    """Live, the hop says the dwell is over (the event-time merge has handed over every frame
-    stamped before it): the burst is sent then, the same burst the next dwell's first frame would
-    have closed."""
-    h = synthetic([(0.4, 0.0, 1.0)], packets=1)[0]
-    setup = make("rover_msgs/msg/RigSetup", setup_yaml=setup_text())
-    hop = make("rover_msgs/msg/ChannelHop", header=header(1_010_000_000), channel=153)
-    op = Aoa()
-    list(op.on_input("setup", setup, 0))
-    for k in range(8):
-        assert list(op.on_input("csi", burst_packet(h, 1, k, 149), 1_000_000_000 + k * 1_000_000)) == []
-    at_hop = [e.msg for e in op.on_input("hops", hop, 1_010_000_000)]
-    assert op.held_since_ns() == math.inf and list(op.on_input("hops", hop, 1_020_000_000)) == []
-    closed = Aoa()
-    list(closed.on_input("setup", setup, 0))
-    for k in range(8):
-        list(closed.on_input("csi", burst_packet(h, 1, k, 149), 1_000_000_000 + k * 1_000_000))
-    by_frame = [e.msg for e in closed.on_input("csi", burst_packet(h, 2, 0, 153), 2_000_000_000)]
-    assert len(at_hop) == 1 and [serialize(m) for m in at_hop] == [serialize(m) for m in by_frame]

@@ -49,7 +49,7 @@ def test_a_live_session_on_three_hosts_is_recorded_and_replays_to_the_same_traje
     assert 0.9 * sent["csi"] <= counts["/csi"] <= sent["csi"], (counts, sent)
 
     # the pose of each burst leaves the laptop before the next dwell's burst is complete (its AoA
-    # sent: the hop after it closed it), in the order an observer on the laptop's machine sees them.
+    # sent: the next dwell's first frame closed it), in the order an observer on the laptop's machine sees them.
     # When a burst had to wait for the next one (promises a fixed lateness behind, riding on the next
     # message), every pose came after the next AoA; now one may only when a starved moment of the two
     # cores (three hosts, three device emulators) delays an AoA until the next one is close behind.

@@ -370,7 +370,7 @@ def replayed(ros2_yaml: Path, dataset: Path, router_port: int, out: Path, target
                "robot/odom": "replay/odom"}  # fmt: skip
     for op in ops.values():
         op["inputs"] = {port: renamed.get(wire, wire) for port, wire in op.get("inputs", {}).items()}
-    del ops["sweep"]["inputs"]["hops"], ops["aoa"]["inputs"]["hops"]  # bursts end by the frames, as in any replay
+    del ops["sweep"]["inputs"]["hops"]
     ops["sweep"]["params"]["mode"] = "label"  # a recording's frames are labelled, not hopped
     for topic in ops["publish"]["params"]["topics"].values():
         topic["history"] = "keep_all"  # a replay loses nothing: a slow subscriber holds it back

@@ -9,6 +9,7 @@ import numpy as np
 from slam_scenes import EXACT_IMU, INDEPENDENT_BURSTS, Scene, angles, edge, estimate, scene, tag_errors, true_angle
 from test_jumps import burst_candidates
 
+from rover.operators.slam.layout import prior_tag
 from rover.operators.slam.sliding_window import SlidingWindow, WindowSettings
 from rover.operators.slam.tag_finder import SEARCH_HISTORY
 
@@ -349,3 +350,21 @@ def test_the_covariances_are_the_blocks_of_the_informations_inverse():
     np.testing.assert_allclose(shared, inverse[shape.shared_states, shape.shared_states], rtol=1e-10)
     last = shape.position(shape.epochs - 1)
     np.testing.assert_allclose(newest, inverse[last, last], rtol=1e-10)
+
+
+def test_a_tags_prior_scaled_down_and_back_is_as_it_was():
+    """The window scales a tag's part of the prior with its bearings' weight, either way
+    (integrity.TagIntegrity.weight): by 1/k, only the tag's own block and its ties lose information,
+    and scaled back by k the prior is as it was, so a jackknife's passing overestimate takes
+    nothing from the tag for good."""
+    sc = scene(seconds=12.0)
+    w, _ = estimate(sc, WindowSettings(window=15, **EXACT_IMU), angles(sc, noise_deg=1.0, seed=2), std_deg=1.0)
+    before = w.prior
+    assert before is not None
+    tag = prior_tag(1)
+    down = before.relaxed(tag, 1.0 / 4.0)
+    np.testing.assert_allclose(down.info[tag, tag], before.info[tag, tag] / 4.0)
+    np.testing.assert_allclose(down.info[0:4, 0:4], before.info[0:4, 0:4])
+    back = down.relaxed(tag, 4.0)
+    np.testing.assert_allclose(back.info, before.info, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(back.grad, before.grad, rtol=1e-12, atol=1e-12)

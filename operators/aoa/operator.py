@@ -149,16 +149,7 @@ class Aoa(Operator):
 
     cpu_weight = 3.7
 
-    inputs = {
-        "csi": In("rover_msgs/msg/Csi"),
-        "setup": In("rover_msgs/msg/RigSetup"),
-        "hops": In(
-            "rover_msgs/msg/ChannelHop",
-            required=False,
-            doc="live retuning events: a burst ends when the receiver leaves its channel, not when the next "
-            "dwell's first frame comes",
-        ),
-    }
+    inputs = {"csi": In("rover_msgs/msg/Csi"), "setup": In("rover_msgs/msg/RigSetup")}
     outputs = {"aoa": Out("rover_msgs/msg/Aoa")}
     Params = AoaParams
 
@@ -174,10 +165,7 @@ class Aoa(Operator):
         self.field = np.ones(360, dtype=bool)
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
-        if port == "hops":  # every frame stamped before the hop was handled: the dwell is over
-            if self.burst:
-                yield from self._flush()
-        elif port == "setup":
+        if port == "setup":
             self._configure(msg)
             pending, self.waiting = self.waiting, []
             for csi, stamp in pending:

@@ -31,9 +31,11 @@ takes as independent (a cluttered room's bearings made the robot 1.4-1.8 times w
 odometry alone). So the jackknife's own estimate (without c) also sets the tag's `weight`, what
 the window multiplies its bearings' variance by, moved at each jackknife toward the value at which
 the window's covariance covers it (at most WEIGHT_STEP at a time, between 1 and MAX_WEIGHT), and
-the tag's part of the prior, which its earlier bearings built at the old weight, is relaxed by the
-same step. A tag whose place does not explain its bearings keeps its weight: there the estimate is
-wrong, not its covariance, and its bearings must stay strong enough to move it.
+the tag's part of the prior, which its earlier bearings built at the old weight, is scaled by the
+same step, either way (only relaxed, a jackknife's passing overestimate would take information
+from the tag for good: a tag published 109 s into a 127 s run no longer was). A tag whose place
+does not explain its bearings keeps its weight: there the estimate is wrong, not its covariance,
+and its bearings must stay strong enough to move it.
 
 Nor can it see bearings that scatter more than their bursts say all over (an NLOS tag: the wall's
 image blends into every burst): so the published covariance is also at least the window's times

@@ -26,7 +26,8 @@ class Prior:
 
     def relaxed(self, states: slice, factor: float) -> Prior:
         """The prior with `factor` of its information on `states` kept (a tag whose bearings keep
-        disagreeing with it: the prior of a tag first seen through wrong-path bearings would hold it)."""
+        disagreeing with it: the prior of a tag first seen through wrong-path bearings would hold it;
+        a tag whose bearings' weight changed, `factor` then above 1 when it fell)."""
         keep = np.ones(len(self.mean))
         keep[states] = math.sqrt(factor)
         return Prior(self.info * np.outer(keep, keep), self.mean, self.grad * keep)

@@ -564,7 +564,7 @@ class SlidingWindow:
                 seen_from = xy[epoch[filled & (tag == t)]]
                 weight = self.integrity.weight.get(t, 1.0)
                 self.integrity.judge(t, self.x[self.shape.tag(t)], cov, seen_from, s.huber_sigma, s.aoa_std_scale)
-                if self.integrity.weight.get(t, 1.0) > weight:  # what its bearings told the prior counts less too
+                if self.integrity.weight.get(t, 1.0) != weight:  # what its bearings told the prior counts as they do
                     self.prior = self._prior.relaxed(prior_tag(t), weight / self.integrity.weight[t])
 
     def observable(self) -> np.ndarray:
