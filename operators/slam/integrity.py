@@ -263,12 +263,14 @@ class TagIntegrity:
         window_xy: np.ndarray,
         huber_sigma: float,
         aoa_std_scale: float,
-    ) -> None:
+    ) -> float:
         """Set `scale[tag_slot]`, how much the tag's window covariance is scaled up to be published:
         enough to cover the jackknives, and the variance factor of its bearings when above 1 (both
         re-estimated every EVERY_BEARINGS bearings, with the window's Huber threshold and scale,
         once MIN_VERDICT_BEARINGS left the window); and the parallax of its bearings, those that
-        left and those still in the window (taken from `window_xy`, (m, 2))."""
+        left and those still in the window (taken from `window_xy`, (m, 2)). Returns what its
+        `weight` was multiplied by (1: unchanged)."""
+        weight = self.weight.get(tag_slot, 1.0)
         if self.due.get(tag_slot, 1) <= 0:
             rows = np.array(self.seen.get(tag_slot, [])).reshape(-1, 4)
             if len(rows) < MIN_VERDICT_BEARINGS:
@@ -285,6 +287,7 @@ class TagIntegrity:
             self.parallax[tag_slot] = parallax_deg(position, np.concatenate([self.judged_xy[tag_slot], window_xy]))
         k = max((inflation(covariance, j) for j in self.jackknife.get(tag_slot, [])), default=1.0)
         self.scale[tag_slot] = max(k, self.factor.get(tag_slot, 0.0))
+        return self.weight.get(tag_slot, 1.0) / weight
 
     def _reweigh(self, tag_slot: int, covariance: np.ndarray, spreads: list[np.ndarray | None]) -> None:
         """Move the tag's `weight` toward what makes the window's covariance cover the jackknives'

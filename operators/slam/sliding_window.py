@@ -562,10 +562,9 @@ class SlidingWindow:
         for t, cov in enumerate(self.tag_covariance):
             if self.active[t]:
                 seen_from = xy[epoch[filled & (tag == t)]]
-                weight = self.integrity.weight.get(t, 1.0)
-                self.integrity.judge(t, self.x[self.shape.tag(t)], cov, seen_from, s.huber_sigma, s.aoa_std_scale)
-                if self.integrity.weight.get(t, 1.0) != weight:  # what its bearings told the prior counts as they do
-                    self.prior = self._prior.relaxed(prior_tag(t), weight / self.integrity.weight[t])
+                k = self.integrity.judge(t, self.x[self.shape.tag(t)], cov, seen_from, s.huber_sigma, s.aoa_std_scale)
+                if k != 1.0:  # what its bearings told the prior counts as they now do
+                    self.prior = self._prior.relaxed(prior_tag(t), 1.0 / k)
 
     def observable(self) -> np.ndarray:
         """Per tag: localized well enough to report (largest std below `observable_std_m`); worked
