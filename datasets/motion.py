@@ -1,5 +1,6 @@
 """Ground-truth motion of a wheeled robot through waypoints: straight runs with smooth speed
-ramps and turns in place at the corners, after standing still at the start."""
+ramps and turns in place at the corners, after standing still at the start (and, with `pause_s`,
+at every waypoint)."""
 
 from __future__ import annotations
 
@@ -70,6 +71,9 @@ class Motion:
                 self.segments.append(Segment(t, duration, "straight", pos, heading, length, top, ramp))
                 t += duration
                 pos = (float(target[0]), float(target[1]))
+                if spec.pause_s > 0:
+                    self.segments.append(Segment(t, spec.pause_s, "still", pos, heading))
+                    t += spec.pause_s
         self.segments.append(Segment(t, 1.0, "still", pos, heading))
         self.duration_s = t + 1.0
         self.path_length_m = sum(s.length_m for s in self.segments if s.kind == "straight")

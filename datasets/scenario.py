@@ -97,6 +97,8 @@ class Trajectory:
     ramp_s: NonNegativeFloat = 1.0
     turn_rate_deg_s: PositiveFloat = 45.0
     stationary_s: NonNegativeFloat = 3.0
+    pause_s: NonNegativeFloat = 0.0
+    """standing still at every waypoint before turning (a robot that stops at its goals)"""
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,15 @@ class Imu:
     gyro_noise_deg_s_rthz: NonNegativeFloat = 0.005
     gyro_bias_deg_s: NonNegativeFloat = 0.02
     gyro_bias_walk_deg_s_rts: NonNegativeFloat = 0.0005
+    gyro_bias_drift_deg_s: NonNegativeFloat = 0.0
+    """how far each axis's bias moves after power-up as the IMU warms (random sign per axis), which
+    the still start cannot see: a consumer MEMS gyro moves 0.1-0.5 deg/s"""
+    gyro_bias_drift_tau_s: PositiveFloat = 300.0
+    """time constant of that warm-up (exponential approach)"""
+    vibration_deg_s: NonNegativeFloat = 0.0
+    """gyro shake (std per sample, white) while the robot drives or turns: 1-2 deg/s on a Jackal"""
+    vibration_mg: NonNegativeFloat = 0.0
+    """accelerometer shake (std per sample, white) while the robot drives or turns"""
     accel_noise_ug_rthz: NonNegativeFloat = 100.0
     accel_bias_mg: NonNegativeFloat = 2.0
     accel_bias_walk_mg_rts: NonNegativeFloat = 0.004

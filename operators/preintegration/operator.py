@@ -22,6 +22,7 @@ from rover.formats.rig import RigInput
 from rover.geometry import exp_so3_batch, quaternion_from_matrix, rpy_matrix, skew_batch
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
+from rover.operators.preintegration.gyro_bias import GyroBias
 from rover.pipeline.params import Checked, NonNegativeFloat, PositiveFloat
 
 log = logging.getLogger("rover.preintegration")
@@ -42,7 +43,22 @@ class PreintegrationParams(Checked):
     accel_bias_m_s2: NonNegativeFloat = 2e-3 * 9.80665
     """accelerometer bias left unknown (1 sigma): a drift the noise densities alone do not show"""
     gyro_bias_rad_s: NonNegativeFloat = math.radians(0.005)
-    """gyro bias left after the stationary estimate (1 sigma)"""
+    """gyro bias left after the stationary estimate (1 sigma): the least the increments carry"""
+    track_gyro_bias: bool = True
+    """re-estimate the gyro bias on every span in which the gyro holds still (gyro_bias.py): a
+    bias that drifts after the start (a consumer IMU warming up) otherwise turns the heading"""
+    gyro_bias_walk_rad_s_rts: PositiveFloat = math.radians(0.001)
+    """the tracked bias's own random walk (1 sigma per root second; the 3DM-GX4-45's is 0.0005)"""
+    gyro_bias_rate_rad_s2: NonNegativeFloat = math.radians(0.005)
+    """how fast the bias may be moving at the start (1 sigma): a consumer IMU's warm-up moves it by
+    0.3 deg/s with a time constant of a minute or more"""
+    gyro_bias_rate_walk_rad_s2_rts: PositiveFloat = math.radians(1e-4)
+    """how fast the bias's rate of change may change (1 sigma per root second): a consumer IMU's
+    warm-up (0.3-1 deg/s over minutes) is followed; a bias that turns faster falls out of the gate"""
+    quiet_span_s: PositiveFloat = 0.5
+    """the gyro is judged still or not over spans this long"""
+    quiet_factor: PositiveFloat = 2.0
+    """a span is still when each axis's gyro spread is at most this times the still start's"""
     planar: bool = True
     """the robot moves on a level floor: it turns only about the vertical it was levelled to at the
     start, so the gyro's roll and pitch rates are left out (their bias left after the still start,
@@ -133,6 +149,8 @@ class Preintegration(Operator):
         self.levelling_std = 0.0
         """the specific force levelling left at the start heading (1 sigma; 0: not levelled on a still start)"""
         self.turns = 0
+        self.tracker: GyroBias | None = None
+        """the gyro bias re-estimated on quiet spans (None: no still start to measure the quiet by)"""
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "setup":
@@ -161,6 +179,8 @@ class Preintegration(Operator):
         assert self.last is not None, "set with the attitude"
         self.pending.append((*self.last, stamp))
         self.last = (stamp, w, f)
+        if self.tracker is not None:
+            self.tracker.add(stamp, w)
 
     def _initialize(self, stamp: int, w: np.ndarray, f: np.ndarray) -> None:
         """Collect the stationary start; then estimate gyro bias and gravity and start integrating."""
@@ -181,6 +201,7 @@ class Preintegration(Operator):
             mean_f = np.array([0.0, 0.0, np.linalg.norm(mean_f)])
         else:
             self.bias = gyro.mean(axis=0)
+            self._track(gyro, stamp)
             self.levelling_std = self.params.accel_noise_m_s2_rthz / math.sqrt(max(span_s, 1e-3))
             log.info(
                 "preintegration: gyro bias %s rad/s and gravity %.3f m/s^2 from %.1f s standing still",
@@ -200,13 +221,42 @@ class Preintegration(Operator):
         self.last = self.still[-1]
         self.still = []
 
+    def _track(self, gyro: np.ndarray, stamp: int) -> None:
+        """Start tracking the gyro bias from the still start's samples (N, 3)."""
+        if not self.params.track_gyro_bias or len(gyro) < 2:
+            return
+        dts = np.diff([s[0] for s in self.still]) / 1e9
+        block = max(2, round(self.params.quiet_span_s / float(np.median(dts))))
+        p = self.params
+        self.tracker = GyroBias.from_still_start(
+            gyro,
+            stamp,
+            p.gyro_bias_walk_rad_s_rts,
+            p.gyro_bias_rate_walk_rad_s2_rts,
+            p.gyro_bias_rate_rad_s2,
+            p.quiet_factor,
+            block,
+        )
+
+    def gyro_bias_std(self, stamp: int) -> float:
+        """The gyro bias left unknown at `stamp` (rad/s, about the vertical): at least gyro_bias_rad_s."""
+        if self.tracker is None:
+            return self.params.gyro_bias_rad_s
+        return max(self.params.gyro_bias_rad_s, float(self.tracker.bias_std(stamp)[2]))
+
+    def _bias_at(self, stamps: np.ndarray) -> np.ndarray:
+        """(N, 3) the gyro bias at each stamp: the tracked one carried at its rate, else the still start's."""
+        if self.tracker is None:
+            return self.bias
+        return self.tracker.bias + np.outer((stamps - self.tracker.stamp_ns) / 1e9, self.tracker.rate)
+
     def _integrate(self, intervals: list[tuple[int, np.ndarray, np.ndarray, int]]) -> None:
         """Advance the increment over samples each held from its stamp to the next, all at once."""
         if not intervals:
             return
         starts = np.array([i[0] for i in intervals], dtype=np.int64)
         ends = np.array([i[3] for i in intervals], dtype=np.int64)
-        w = np.array([i[1] for i in intervals]) - self.bias
+        w = np.array([i[1] for i in intervals]) - self._bias_at(starts)
         if self.params.planar:  # only the rate about the levelled vertical (see PreintegrationParams.planar)
             up = self.level[2]
             w = np.outer(w @ up, up)
@@ -284,7 +334,7 @@ class Preintegration(Operator):
             frame = np.eye(9)
             frame[3:6, 3:6] = r0
             frame[6:9, 6:9] = r0
-            cov = frame @ inc.with_biases(self.params.accel_bias_m_s2, self.params.gyro_bias_rad_s) @ frame.T
+            cov = frame @ inc.with_biases(self.params.accel_bias_m_s2, self.gyro_bias_std(stamp)) @ frame.T
             turning = inc.turning_in_place(self.params.turn_in_place_rad_s, self.params.still_speed_m_s)
             self.turns += turning
 
@@ -324,4 +374,10 @@ class Preintegration(Operator):
                 "preintegration: the IMU stream ended during the stationary start (%d samples)", len(self.still)
             )
         log.info("preintegration: %d interval(s) turning in place", self.turns)
+        if self.tracker is not None:
+            log.info(
+                "preintegration: gyro bias re-estimated on %d still span(s), now %s rad/s",
+                self.tracker.spans,
+                np.array2string(self.tracker.bias, precision=5),
+            )
         return ()
