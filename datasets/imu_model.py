@@ -3,8 +3,8 @@
 The IMU reports specific force in the body frame, gravity included (+9.81 on z when level),
 and angular velocity, each with white noise (noise density times the square root of the rate),
 a constant bias drawn once, and a bias random walk; optionally a warm-up drift of the gyro bias
-after power-up and the shake of a base that drives (drawn only when on, so that runs without them
-keep their random stream).
+after power-up and the shake of a base that drives (drawn from a stream of their own, so that
+turning them on changes nothing else).
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ class ImuSamples:
     accel_bias: np.ndarray
 
 
-def imu_samples(state: State, spec: Imu, rng: np.random.Generator) -> ImuSamples:
+def imu_samples(state: State, spec: Imu, rng: np.random.Generator, extra: np.random.Generator) -> ImuSamples:
+    """The IMU's samples along `state`: the noise and biases from `rng`, the drift and shake from `extra`."""
     n = len(state.yaw)
     dt = 1.0 / spec.rate_hz
     cos, sin = np.cos(state.yaw), np.sin(state.yaw)
@@ -53,15 +54,15 @@ def imu_samples(state: State, spec: Imu, rng: np.random.Generator) -> ImuSamples
     accel_white = spec.accel_noise_ug_rthz * UG_M_S2 * math.sqrt(spec.rate_hz)
     if spec.gyro_bias_drift_deg_s > 0:
         t_s = np.arange(n) * dt
-        signs = rng.choice([-1.0, 1.0], 3)
+        signs = extra.choice([-1.0, 1.0], 3)
         warm = 1.0 - np.exp(-t_s / spec.gyro_bias_drift_tau_s)
         gyro_bias = gyro_bias + np.outer(warm, signs * math.radians(spec.gyro_bias_drift_deg_s))
     gyro = true_gyro + gyro_bias + rng.normal(0, gyro_white, (n, 3))
     accel = true_accel + accel_bias + rng.normal(0, accel_white, (n, 3))
     if spec.vibration_deg_s > 0 or spec.vibration_mg > 0:
         moving = ((np.hypot(state.vel[:, 0], state.vel[:, 1]) > 1e-6) | (np.abs(state.yaw_rate) > 1e-6))[:, None]
-        gyro = gyro + moving * rng.normal(0, math.radians(spec.vibration_deg_s), (n, 3))
-        accel = accel + moving * rng.normal(0, spec.vibration_mg * MG_M_S2, (n, 3))
+        gyro = gyro + moving * extra.normal(0, math.radians(spec.vibration_deg_s), (n, 3))
+        accel = accel + moving * extra.normal(0, spec.vibration_mg * MG_M_S2, (n, 3))
     return ImuSamples(accel, gyro, gyro_bias, accel_bias)
 
 

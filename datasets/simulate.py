@@ -42,6 +42,8 @@ PATH_STEP_S = 0.25
 """the robot's path, as the scatterers keep clear of it: a point every this many seconds"""
 CLUTTER_STREAM = 16
 """the clutter (scatterers and shadowing) draws from a stream of its own"""
+IMU_STREAM = 17
+"""the gyro's warm-up drift and the base's shake draw from a stream of their own"""
 JUMP_DRAWS = 4
 """jumps are drawn as 0..3 steps: at 5 GHz (step pi) that is 0 or pi, each equally likely"""
 
@@ -311,7 +313,7 @@ def simulate(
 
     imu_t = np.arange(0.0, duration, 1.0 / scenario.imu.rate_hz)
     imu_state = motion.state(imu_t)
-    imu = imu_samples(imu_state, scenario.imu, rng)
+    imu = imu_samples(imu_state, scenario.imu, rng, np.random.default_rng([seed, IMU_STREAM]))
 
     def vec(v: np.ndarray) -> Any:
         return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))

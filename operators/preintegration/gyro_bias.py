@@ -27,6 +27,28 @@ import numpy as np
 
 GATE_SIGMA = 3.0
 """how far (in stds of the predicted bias and the span's noise) a span's mean may be from the bias"""
+RATE_TAU_S = 120.0
+"""a warm-up's rate fades (first-order Gauss-Markov with this time constant): carried on at full
+speed through minutes without a still span, an estimated rate turns the bias further than it goes"""
+
+
+@dataclass(frozen=True)
+class BiasModel:
+    """How the bias may move, and what a quiet span is."""
+
+    walk_rad_s_rts: float
+    """the bias's own random walk (1 sigma per root second)"""
+    rate_walk_rad_s2_rts: float
+    """the random walk of its rate of change"""
+    rate_rad_s2: float
+    """its rate of change at the start (1 sigma)"""
+    quiet_factor: float
+    """a quiet span's spread is at most this times the still start's"""
+    block: int
+    """samples judged at a time"""
+    noise_rad_s: float
+    """the gyro's white noise per sample (datasheet): the least spread taken for the still start's,
+    so that a noise-free or quantized start does not refuse every span"""
 
 
 @dataclass
@@ -35,10 +57,9 @@ class GyroBias:
     from quiet spans of samples.
 
     A warm-up is smooth: the bias moves steadily in one direction for minutes. So the bias carries
-    its rate (an integrated random walk, `rate_walk`, beside the bias's own random walk, `walk`),
-    and a span is gated against the bias extrapolated at that rate: a robot that stops every 25 s
-    sees its bias move on between stops by as much as the gate, and a random walk alone would
-    lose it there for good.
+    its rate, and a span is gated against the bias carried on at that rate: a robot that stops
+    every 25 s sees its bias move on between stops by as much as the gate, and a random walk alone
+    lost it there for good. The rate fades with RATE_TAU_S, as a warm-up's does.
     """
 
     bias: np.ndarray
@@ -48,77 +69,66 @@ class GyroBias:
     still_std: np.ndarray
     """(3,) each axis's spread per sample standing still at the start (rad/s)"""
     stamp_ns: int
-    walk_rad_s_rts: float
-    rate_walk_rad_s2_rts: float
-    quiet_factor: float
-    block: int
-    """samples judged at a time"""
+    model: BiasModel
     spans: int = 0
-    """quiet spans used"""
+    """spans that moved the bias"""
     samples: list[np.ndarray] = field(default_factory=list)
 
     @classmethod
-    def from_still_start(
-        cls,
-        gyro: np.ndarray,
-        stamp_ns: int,
-        walk_rad_s_rts: float,
-        rate_walk_rad_s2_rts: float,
-        rate_rad_s2: float,
-        quiet_factor: float,
-        block: int,
-    ) -> GyroBias:
-        """The bias and its spread from the still start's samples (N, 3); its rate zero, `rate_rad_s2` 1 sigma."""
-        std = gyro.std(axis=0)
+    def from_still_start(cls, gyro: np.ndarray, stamp_ns: int, model: BiasModel) -> GyroBias:
+        """The bias and its spread from the still start's samples (N, 3); its rate zero, within `model.rate_rad_s2`."""
+        std = np.maximum(gyro.std(axis=0), model.noise_rad_s)
         covariance = np.zeros((3, 2, 2))
         covariance[:, 0, 0] = std**2 / len(gyro)
-        covariance[:, 1, 1] = rate_rad_s2**2
-        return cls(
-            gyro.mean(axis=0),
-            np.zeros(3),
-            covariance,
-            std,
-            stamp_ns,
-            walk_rad_s_rts,
-            rate_walk_rad_s2_rts,
-            quiet_factor,
-            block,
-        )
+        covariance[:, 1, 1] = model.rate_rad_s2**2
+        return cls(gyro.mean(axis=0), np.zeros(3), covariance, std, stamp_ns, model)
+
+    def carried(self, dt_s: np.ndarray | float) -> np.ndarray:
+        """How far the rate moves the bias in `dt_s` from the last update (per unit rate), as it fades."""
+        return RATE_TAU_S * -np.expm1(-np.maximum(dt_s, 0.0) / RATE_TAU_S)
+
+    def at(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """(N, 3) the bias at each stamp: the last estimate carried on at its fading rate."""
+        return self.bias + np.outer(self.carried((stamps_ns - self.stamp_ns) / 1e9), self.rate)
 
     def predicted(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bias (3,), rate (3,) and covariance (3, 2, 2) carried from the last update to `stamp_ns`."""
         dt = max(stamp_ns - self.stamp_ns, 0) / 1e9
-        step = np.array([[1.0, dt], [0.0, 1.0]])
-        noise = self.rate_walk_rad_s2_rts**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
-        noise[0, 0] += self.walk_rad_s_rts**2 * dt
-        return self.bias + self.rate * dt, self.rate, step @ self.covariance @ step.T + noise
+        fade = float(np.exp(-dt / RATE_TAU_S))
+        step = np.array([[1.0, float(self.carried(dt))], [0.0, fade]])
+        m = self.model
+        noise = m.rate_walk_rad_s2_rts**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        noise[0, 0] += m.walk_rad_s_rts**2 * dt
+        return self.bias + step[0, 1] * self.rate, fade * self.rate, step @ self.covariance @ step.T + noise
 
-    def bias_std(self, stamp_ns: int) -> np.ndarray:
-        """(3,) each axis's bias std at `stamp_ns`."""
-        return np.sqrt(self.predicted(stamp_ns)[2][:, 0, 0])
+    def bias_variance(self, stamp_ns: int) -> np.ndarray:
+        """(3,) each axis's bias variance at `stamp_ns`."""
+        return self.predicted(stamp_ns)[2][:, 0, 0]
 
     def add(self, stamp_ns: int, gyro: np.ndarray) -> bool:
         """Take one sample; at the end of each span judge it. Whether the bias moved."""
         self.samples.append(gyro)
-        if len(self.samples) < self.block:
+        if len(self.samples) < self.model.block:
             return False
         span = np.array(self.samples)
         self.samples = []
         return self.update(span, stamp_ns)
 
     def update(self, span: np.ndarray, stamp_ns: int) -> bool:
-        """Fuse a span's mean (N, 3 samples ending at `stamp_ns`) if it is quiet and within the gate."""
-        if np.any(span.std(axis=0) > self.quiet_factor * self.still_std):
+        """Fuse a span's mean (N, 3 samples ending at `stamp_ns`) on each axis within its gate, if the
+        span is quiet on every axis (a span that rotates about any axis is not a still robot)."""
+        spread = span.std(axis=0)
+        if np.any(spread > self.model.quiet_factor * self.still_std):
             return False
         bias, rate, covariance = self.predicted(stamp_ns)
         innovation = span.mean(axis=0) - bias
-        total = covariance[:, 0, 0] + self.still_std**2 / len(span)
-        if np.any(np.abs(innovation) > GATE_SIGMA * np.sqrt(total)):
-            return False
+        total = covariance[:, 0, 0] + np.maximum(spread, self.still_std) ** 2 / len(span)
+        fused = np.abs(innovation) <= GATE_SIGMA * np.sqrt(total)
         gain = np.divide(covariance[:, :, 0], total[:, None], out=np.zeros((3, 2)), where=total[:, None] > 0)
+        gain[~fused] = 0.0
         self.bias = bias + gain[:, 0] * innovation
         self.rate = rate + gain[:, 1] * innovation
         self.covariance = covariance - gain[:, :, None] * covariance[:, None, 0, :]
         self.stamp_ns = stamp_ns
-        self.spans += 1
-        return True
+        self.spans += bool(fused.any())
+        return bool(fused.any())

@@ -22,7 +22,7 @@ from rover.formats.rig import RigInput
 from rover.geometry import exp_so3_batch, quaternion_from_matrix, rpy_matrix, skew_batch
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
-from rover.operators.preintegration.gyro_bias import GyroBias
+from rover.operators.preintegration.gyro_bias import BiasModel, GyroBias
 from rover.pipeline.params import Checked, NonNegativeFloat, PositiveFloat
 
 log = logging.getLogger("rover.preintegration")
@@ -225,30 +225,26 @@ class Preintegration(Operator):
         """Start tracking the gyro bias from the still start's samples (N, 3)."""
         if not self.params.track_gyro_bias or len(gyro) < 2:
             return
-        dts = np.diff([s[0] for s in self.still]) / 1e9
-        block = max(2, round(self.params.quiet_span_s / float(np.median(dts))))
         p = self.params
-        self.tracker = GyroBias.from_still_start(
-            gyro,
-            stamp,
+        dt_s = float(np.median(np.diff([s[0] for s in self.still]))) / 1e9
+        model = BiasModel(
             p.gyro_bias_walk_rad_s_rts,
             p.gyro_bias_rate_walk_rad_s2_rts,
             p.gyro_bias_rate_rad_s2,
             p.quiet_factor,
-            block,
+            block=max(2, round(p.quiet_span_s / dt_s)),
+            noise_rad_s=p.gyro_noise_rad_s_rthz / math.sqrt(dt_s),
         )
+        self.tracker = GyroBias.from_still_start(gyro, stamp, model)
 
     def gyro_bias_std(self, stamp: int) -> float:
-        """The gyro bias left unknown at `stamp` (rad/s, about the vertical): at least gyro_bias_rad_s."""
+        """The gyro bias left unknown at `stamp` (rad/s) about the vertical (planar) or the worst
+        axis: at least gyro_bias_rad_s."""
         if self.tracker is None:
             return self.params.gyro_bias_rad_s
-        return max(self.params.gyro_bias_rad_s, float(self.tracker.bias_std(stamp)[2]))
-
-    def _bias_at(self, stamps: np.ndarray) -> np.ndarray:
-        """(N, 3) the gyro bias at each stamp: the tracked one carried at its rate, else the still start's."""
-        if self.tracker is None:
-            return self.bias
-        return self.tracker.bias + np.outer((stamps - self.tracker.stamp_ns) / 1e9, self.tracker.rate)
+        variance = self.tracker.bias_variance(stamp)
+        worst = float(variance @ self.level[2] ** 2) if self.params.planar else float(variance.max())
+        return max(self.params.gyro_bias_rad_s, math.sqrt(worst))
 
     def _integrate(self, intervals: list[tuple[int, np.ndarray, np.ndarray, int]]) -> None:
         """Advance the increment over samples each held from its stamp to the next, all at once."""
@@ -256,7 +252,7 @@ class Preintegration(Operator):
             return
         starts = np.array([i[0] for i in intervals], dtype=np.int64)
         ends = np.array([i[3] for i in intervals], dtype=np.int64)
-        w = np.array([i[1] for i in intervals]) - self._bias_at(starts)
+        w = np.array([i[1] for i in intervals]) - (self.bias if self.tracker is None else self.tracker.at(starts))
         if self.params.planar:  # only the rate about the levelled vertical (see PreintegrationParams.planar)
             up = self.level[2]
             w = np.outer(w @ up, up)
