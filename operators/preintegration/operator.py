@@ -23,6 +23,7 @@ from rover.geometry import exp_so3_batch, quaternion_from_matrix, rpy_matrix, sk
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.preintegration.gyro_bias import BiasModel, GyroBias
+from rover.operators.preintegration.scan import prefix_products, propagated
 from rover.pipeline.params import Checked, NonNegativeFloat, PositiveFloat
 
 log = logging.getLogger("rover.preintegration")
@@ -269,11 +270,7 @@ class Preintegration(Operator):
                 )
         inc = self.increment
         steps = exp_so3_batch(w * dt[:, None])
-        rotations = np.empty((len(dt), 3, 3))
-        current = inc.rotation
-        for k in range(len(dt)):
-            rotations[k] = current
-            current = current @ steps[k]
+        rotations, current = prefix_products(inc.rotation, steps)
         accel = np.einsum("kij,kj->ki", rotations, f)
         dv = accel * dt[:, None]
         velocity_before = inc.velocity + np.cumsum(dv, axis=0) - dv
@@ -294,7 +291,8 @@ class Preintegration(Operator):
         self.attitude = self.epoch_attitude @ current
 
     def _propagate(self, cov: np.ndarray, steps, rotations, f, dt) -> np.ndarray:
-        """Forster's error-state covariance propagation, sample by sample (9x9 per step)."""
+        """Forster's error-state covariance propagation through each sample (9x9 per step, composed
+        a whole interval at a time)."""
         n = len(dt)
         rf = np.einsum("kij,kjl->kil", rotations, skew_batch(f))
         a = np.zeros((n, 9, 9))
@@ -309,9 +307,7 @@ class Preintegration(Operator):
         noise = np.zeros((n, 9, 9))
         noise[:, 3:9, 3:9] = b @ b.transpose(0, 2, 1) * (self.params.accel_noise_m_s2_rthz**2 / safe)[:, None, None]
         noise[:, 0:3, 0:3] = np.eye(3) * (self.params.gyro_noise_rad_s_rthz**2 / safe * dt**2)[:, None, None]
-        for k in range(n):
-            cov = a[k] @ cov @ a[k].T + noise[k]
-        return cov
+        return propagated(cov, a, noise)
 
     def _epoch(self, stamp: int):
         if self.attitude is None or self.last is None or (self.epoch_ns is not None and stamp <= self.epoch_ns):
