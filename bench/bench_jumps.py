@@ -7,7 +7,9 @@ direct path shadowed by 4 dB; docs/datasets.md), and the same room with one bear
 (`bearings`: chains on their calibration, `aoa.jumps=false`: what another AoA source, or a replay of
 real bearings, gives the SLAM, no tag search), same seeds: `paper` seeds 1-6 and `long_hall`
 seed 1 (`--seeds 1 2 --hall-seeds` for a quick subset). Per tag: the seconds from its first AoA to
-its first localization and the parallax it had been seen over by then; per seed, the robot from
+its first localization, to when the geometry first allowed it (`rover eval`'s `geometry_after_s`:
+views spanning 30 deg, from its true place along the true path) and the parallax it had been seen
+over by then; per seed, the robot from
 its odometry alone (`slam.bearings=false`), and each run's robot error over it. Goals
 (bench/goals.yaml): tags as good as without jumps, every tag heard localized within 20 s of its
 first AoA, and no more than 1% of the published localized estimates beyond 3 sigma of their own
@@ -73,6 +75,7 @@ def figures_of(m: dict[str, Any]) -> dict[str, Any]:
     tags = m.get("tags", {})
     published = m.get("published", {})
     after = [t["localized_after_s"] for t in tags.values() if isinstance(t, dict) and t.get("localized")]
+    waited = [t["localized_after_geometry_s"] for t in tags.values() if "localized_after_geometry_s" in t]
     return {
         "robot_mean_m": m["robot"]["trajectory.tum"]["unaligned"]["mean_m"],
         "los_tags_mean_m": m.get("los_tags_mean_m"),
@@ -93,6 +96,8 @@ def figures_of(m: dict[str, Any]) -> dict[str, Any]:
             if isinstance(t, dict) and t.get("localized")
         },
         "localized_after_max_s": max(after, default=None),
+        "geometry_after_s": {int(i): t.get("geometry_after_s") for i, t in tags.items() if isinstance(t, dict)},
+        "localized_after_geometry_median_s": float(np.median(waited)) if waited else None,
         "los_beyond_3_sigma": published.get("los", {}).get("beyond_3_sigma"),
         "nlos_beyond_3_sigma": published.get("nlos", {}).get("beyond_3_sigma"),
     }
@@ -121,7 +126,7 @@ def main() -> None:
             f["robot_over_odometry_alone"] = f["robot_mean_m"] / alone
     print(
         f"{'run':<14}{'robot cm':>10}{'/odometry':>10}{'LOS tags cm':>13}{'NLOS tag cm':>13}"
-        "  localized  AoA LOS/NLOS deg  >3 sigma LOS/NLOS  s to localize  deg seen over  ratio to none"
+        "  localized  AoA LOS/NLOS deg  >3 sigma LOS/NLOS  s to localize  geometry s     deg seen over  ratio to none"
     )
     for key, f in figures.items():
         seed, regime = key.split("_")
@@ -133,11 +138,13 @@ def main() -> None:
         aoa = f"{f['aoa_los_median_deg'] or float('nan'):.1f}/{f['aoa_nlos_median_deg'] or float('nan'):.1f}"
         after = ",".join(f"{v:.0f}" for _, v in sorted(f["localized_after_s"].items()) if v is not None) or "-"
         seen = ",".join(f"{v:.0f}" for _, v in sorted(f["parallax_at_localization_deg"].items()) if v is not None)
+        geometry = ",".join("-" if v is None else f"{v:.0f}" for _, v in sorted(f["geometry_after_s"].items()))
         odometry = f"{f['robot_over_odometry_alone']:.2f}x" if "robot_over_odometry_alone" in f else "-"
         beyond = "/".join("-" if v is None else f"{v:.0%}" for v in (f["los_beyond_3_sigma"], f["nlos_beyond_3_sigma"]))
         print(
             f"{key:<14}{cm(f['robot_mean_m']):>10}{odometry:>10}{cm(f['los_tags_mean_m']):>13}{cm(f['nlos_tag_m']):>13}"
-            f"  {','.join(map(str, f['localized'])):<9}  {aoa:<16}  {beyond:<17}  {after:<14} {seen or '-':<14} "
+            f"  {','.join(map(str, f['localized'])):<9}  {aoa:<16}  {beyond:<17}  {after:<14} {geometry:<14} "
+            f"{seen or '-':<14} "
             f"{ratio if regime != 'none' else ''}"
         )
     if args.json:

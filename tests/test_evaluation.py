@@ -183,7 +183,7 @@ def test_rover_eval_agrees_with_evo(tmp_path):
         assert metrics["robot"][name]["unaligned"]["mean_m"] == pytest.approx(unaligned["mean"], abs=1e-5)
     assert metrics["tags"]["1"]["error_m"] == pytest.approx(0.1, abs=1e-6)
     assert metrics["tags"]["1"]["sigmas"] == pytest.approx(1.0, abs=1e-5)  # 10 cm off, std 10 cm
-    assert metrics["tags"]["2"] == {"nlos": True, "localized": False}
+    assert metrics["tags"]["2"] == {"nlos": True, "localized": False, "geometry_after_s": None}  # no AoA recorded
     table = run_rover("eval", str(run), "--truth", str(reference), "--tags", str(tags))
     assert "trajectory_live.tum aligned" in table.stdout and "never localized" in table.stdout
 
@@ -387,6 +387,31 @@ def test_the_time_each_tag_took_to_be_localized_counts_from_its_first_aoa():
     assert localized_after_s(run, 1) == pytest.approx(6.25)
     assert localized_after_s(run, 2) is None
     assert localized_after_s(run, 3) is None
+
+
+def test_when_the_geometry_first_allowed_a_tag():
+    """From the tag's true place along the true path, at the AoAs the SLAM had: a robot driving along
+    y = 0 at 0.5 m/s past a tag at (0, 2), first hearing it at x = -3.5 (29.7 deg off its path),
+    has seen it over 30 deg once that angle is 59.7 deg, at x = -1.17, 4.7 s later; a tag heard
+    from one place only never allows it."""
+    from rover.evaluation.metrics import GEOMETRY_PARALLAX_DEG, Truth, geometry_after_s
+
+    stamps = np.arange(0, 81, dtype=np.int64) * 100_000_000  # 8 s at 0.5 m/s from x = -4
+    x = -4.0 + 0.05 * np.arange(81)
+    path = Poses2D(stamps, np.stack([x, np.zeros(81)], axis=1), np.zeros(81))
+    truth = Truth(path, {1: (np.array([0.0, 2.0]), False), 2: (np.array([0.0, 2.0]), False)})
+    every = (np.concatenate([stamps[10:], np.full(5, stamps[10])]), np.concatenate([np.ones(71, int), np.full(5, 2)]))
+    empty = np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2))
+    history = (np.zeros(0, np.int64), np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 2, 2)))
+    aoa = (np.zeros(0, np.int64), np.zeros(0, int), np.zeros(0), np.zeros(0))
+    heard = {1: (int(stamps[10]), int(stamps[-1])), 2: (int(stamps[10]), int(stamps[10]))}
+    run = RunRecord(path, path, *empty, tag_history=history, aoa=aoa, heard=heard, seen=every)
+    first = math.atan2(2.0, 0.0 - x[10])  # the direction from the robot's first view, seen from the tag
+    crossing = 2.0 / math.tan(first + math.radians(GEOMETRY_PARALLAX_DEG))  # tag x less robot x there
+    expected_s = ((0.0 - crossing) - x[10]) / 0.5
+    assert geometry_after_s(run, truth, 1) == pytest.approx(expected_s, abs=0.1)
+    assert geometry_after_s(run, truth, 2) is None
+    assert geometry_after_s(run, truth, 3) is None
 
 
 def test_the_parallax_a_tag_had_when_first_localized():
