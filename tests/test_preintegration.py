@@ -18,10 +18,8 @@ from rover.operators.preintegration.operator import Preintegration, Preintegrati
 EPOCH_NS = 400_000_000
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    path = tmp_path_factory.mktemp("pre") / "sim.mcap"
-    simulate(load_scenario("paper", {"trajectory.laps": "1"}), 21, path)
+def imu_and_truth(path) -> tuple[list, dict]:
+    """A simulated dataset's IMU samples and its true poses (x, y, yaw) by stamp."""
     imu, poses = [], {}
     for topic, stamp, data in read_bag(path):
         if topic == "/imu/data":
@@ -30,6 +28,13 @@ def run(tmp_path_factory):
             p = deserialize(data, "geometry_msgs/msg/PoseStamped").pose
             poses[stamp] = (p.position.x, p.position.y, float(yaw_of(p.orientation)))
     return imu, poses
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    path = tmp_path_factory.mktemp("pre") / "sim.mcap"
+    simulate(load_scenario("paper", {"trajectory.laps": "1"}), 21, path)
+    return imu_and_truth(path)
 
 
 def feed(op: Preintegration, imu, epoch_ns: int = EPOCH_NS, mount: np.ndarray | None = None):
@@ -110,14 +115,7 @@ def drifting(overrides: dict[str, str], tmp_path) -> tuple[list, dict]:
     path = tmp_path / "drift.mcap"
     settings = {"trajectory.laps": "2", "imu.gyro_bias_drift_deg_s": "0.5", "imu.gyro_bias_drift_tau_s": "120"}
     simulate(load_scenario("paper", {**settings, **overrides}), 22, path)
-    imu, poses = [], {}
-    for topic, stamp, data in read_bag(path):
-        if topic == "/imu/data":
-            imu.append((stamp, deserialize(data, "sensor_msgs/msg/Imu")))
-        elif topic == "/groundtruth/pose":
-            p = deserialize(data, "geometry_msgs/msg/PoseStamped").pose
-            poses[stamp] = (p.position.x, p.position.y, float(yaw_of(p.orientation)))
-    return imu, poses
+    return imu_and_truth(path)
 
 
 @pytest.mark.slow
