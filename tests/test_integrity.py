@@ -14,6 +14,7 @@ from rover.geometry import parallax_deg
 from rover.operators.slam.integrity import (
     CELL_M,
     CELLS_M,
+    CONFIRM_INFLATION,
     MAX_VARIANCE_FACTOR,
     MAX_WEIGHT,
     MIN_CELLS,
@@ -232,6 +233,35 @@ def test_a_tag_is_published_only_once_judged_from_enough_places_and_parallax():
     assert judged(far, 60).verdict(0) is None, "6 m of path: 6 places, and 23 deg"
 
 
+def test_a_first_jackknife_that_must_inflate_much_waits_for_a_second():
+    """Bearings erring alike per 1 m cell: the first jackknife must inflate the window's covariance
+    (taken as independent) more than CONFIRM_INFLATION, so the tag waits for a second one; exact
+    bearings need nothing, and the first look lets them out."""
+    robot = rectangle()[:80]  # 8 m: 8 places
+    stds = np.full(len(robot), math.radians(2.0))
+    cells = np.floor(robot / 1.0).astype(int)
+    _, cell = np.unique(cells, axis=0, return_inverse=True)
+    shared = np.random.default_rng(7).normal(0.0, math.radians(6.0), cell.max() + 1)[cell.ravel()]
+    verdicts = {}
+    for name, noise in (("alike", shared), ("exact", np.zeros(len(robot)))):
+        angles = bearings(robot, TAG, noise)
+        trust = TagIntegrity()
+        cov = naive_covariance(TAG, robot[:60], stds[:60])
+        for r, a in zip(robot[:60], angles[:60], strict=True):
+            trust.add(0, r, float(a), float(stds[0]))
+        trust.judge(0, TAG, cov, NOWHERE, HUBER, 1.0)
+        first = trust.verdict(0)
+        for r, a in zip(robot[60:], angles[60:], strict=True):
+            trust.add(0, r, float(a), float(stds[0]))
+        trust.judge(0, TAG, cov, NOWHERE, HUBER, 1.0)
+        verdicts[name] = (first, trust.verdict(0), trust.inflated[0])
+    first, second, k = verdicts["alike"]
+    assert k > CONFIRM_INFLATION
+    assert first is not None and "first jackknife inflated its covariance" in first
+    assert second is None, "a second jackknife has looked: the covariance it scales is published"
+    assert verdicts["exact"][0] is None
+
+
 def test_a_window_converged_near_the_robot_is_not_published_and_the_true_place_may_be():
     """A window fed bearings with persistent errors from a short stretch of path can converge to a
     wrong crossing near the robot, where a small covariance is easy (a real building's bearings
@@ -239,17 +269,19 @@ def test_a_window_converged_near_the_robot_is_not_published_and_the_true_place_m
     the true place). Its verdict says its place does not explain them, where its covariance alone
     (taking the bearings as independent) is under 0.1 m; the true place's verdict, residuals within
     their stds, lets it be published."""
-    robot = np.stack([np.linspace(0.0, 6.0, 60), np.zeros(60)], axis=1)
+    path = np.stack([np.linspace(0.0, 8.0, 80), np.zeros(80)], axis=1)  # 6 m judged, then 2 m more
+    robot = path[:60]
     truth, wrong = np.array([4.0, 5.0]), np.array([1.0, 0.6])
     std = math.radians(6.0)
-    angles = bearings(robot, truth, np.random.default_rng(5).normal(0.0, std, len(robot)))
+    angles = bearings(path, truth, np.random.default_rng(5).normal(0.0, std, len(path)))
     verdicts = []
     for place in (wrong, truth):
         trust = TagIntegrity()
-        for r, a in zip(robot, angles, strict=True):
-            trust.add(0, r, float(a), std)
         cov = naive_covariance(place, robot, np.full(len(robot), std))
-        trust.judge(0, place, cov, NOWHERE, HUBER, 1.0)
+        for part in (slice(0, 60), slice(60, None)):  # two jackknives, the second 20 bearings on
+            for r, a in zip(path[part], angles[part], strict=True):
+                trust.add(0, r, float(a), std)
+            trust.judge(0, place, cov, NOWHERE, HUBER, 1.0)
         verdicts.append(trust.verdict(0))
     assert math.sqrt(np.linalg.eigvalsh(naive_covariance(wrong, robot, np.full(len(robot), std))).max()) < 0.1
     assert verdicts[0] is not None and "its place does not explain them" in verdicts[0]

@@ -171,8 +171,9 @@ def test_no_odometry_at_all_and_bad_angles_are_counted(caplog):
 
 def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
     """A tag whose bearings carry jump candidates: the operator searches for it after the epoch's
-    pose is out (one search per epoch at most, timed as `slam.search`), and finds it."""
-    sc = scene(seconds=15.0, tags=((3.0, 2.0),))
+    pose is out (one search per epoch at most, timed as `slam.search`), and finds it (20 s: its
+    first jackknife sets its covariance, so a second one confirms it before it is published)."""
+    sc = scene(seconds=20.0, tags=((3.0, 2.0),))
     rng = np.random.default_rng(3)
     std = math.radians(3.0)
     aoas = []

@@ -46,12 +46,13 @@ And a tag is published as localized only once it has a verdict (`TagIntegrity.ve
 MIN_VERDICT_BEARINGS of its bearings left the window and were judged, they span MIN_PARALLAX_DEG
 seen from the estimate, the estimate explains them (at most half beyond 3 of their stds:
 MAX_VARIANCE_FACTOR), and they were taken from MIN_CELLS places, so that the jackknife has checked
-its covariance. Before that its covariance is the window's alone, and a window fed bearings with
-persistent errors from a short stretch of path converges to a crossing near the robot, where a
-small covariance is easy (a real building's bearings replayed: declared localized 7-16 s after
-first heard, 6-11 m off, stds of 0.05-0.2 m, the bearings' median residual 60 deg there against 6
-at the true place; our cluttered room with one bearing per burst: 2-3.4 m off at 5-13 s, up to 9
-sigma).
+its covariance, and, where that first jackknife inflated it more than CONFIRM_INFLATION, a second
+has confirmed it. Before that its covariance is the window's alone, and a window fed
+bearings with persistent errors from a short stretch of path converges to a crossing near the
+robot, where a small covariance is easy (a real building's bearings replayed: declared localized
+7-16 s after first heard, 6-11 m off, stds of 0.05-0.2 m, the bearings' median residual 60 deg
+there against 6 at the true place; our cluttered room with one bearing per burst: 2-3.4 m off at
+5-13 s, up to 9 sigma).
 """
 
 from __future__ import annotations
@@ -71,6 +72,13 @@ CELLS_M = (CELL_M, 2.0)
 """the cell sizes of the jackknives whose largest scaling is kept"""
 MIN_CELLS = 5
 """cells a tag's bearings must span before the jackknife speaks (fewer: the window's covariance)"""
+CONFIRM_INFLATION = 2.0
+"""a tag whose published covariance would rest on its first jackknife (inflating the window's more
+than this) is not published until a second one, EVERY_BEARINGS on, has looked: a jackknife from a
+few places is itself uncertain, more than Hotelling's factor allows where neighbouring places err
+alike (`paper` seed 2's lap from bearings: a first jackknife at 5 cells inflated 4.1-fold and let a
+tag out 0.88 m off at 3.5 sigma of a 0.35 m std; the next scaled it 27-fold). A tag whose window
+covariance already covers its first jackknife (most, at `aoa_std_scale` 4) is published at once"""
 EVERY_BEARINGS = 20
 """new bearings of a tag between two jackknife estimates"""
 ITERATIONS = 4
@@ -226,6 +234,10 @@ class TagIntegrity:
     seen: dict[int, list[tuple[float, float, float, float]]] = field(default_factory=dict)
     jackknife: dict[int, list[np.ndarray | None]] = field(default_factory=dict)
     """per slot: its latest jackknife covariance at each size of CELLS_M"""
+    checks: dict[int, int] = field(default_factory=dict)
+    """per slot: the jackknives it has had from MIN_CELLS places or more"""
+    inflated: dict[int, float] = field(default_factory=dict)
+    """per slot: how much its latest jackknives inflate the window's covariance (`inflation`)"""
     due: dict[int, int] = field(default_factory=dict)
     """per slot: bearings to come before its next jackknife"""
     factor: dict[int, float] = field(default_factory=dict)
@@ -279,6 +291,7 @@ class TagIntegrity:
                 robot, angles, stds = rows[:, :2], rows[:, 2], rows[:, 3]
                 spreads = [jackknife_spread(position, robot, angles, stds, huber_sigma, cell_m) for cell_m in CELLS_M]
                 self.jackknife[tag_slot] = [covering(j) for j in spreads]
+                self.checks[tag_slot] = self.checks.get(tag_slot, 0) + (spreads[0] is not None)
                 self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
                 self._reweigh(tag_slot, covariance, [None if j is None else j[0] for j in spreads])
                 self.judged_xy[tag_slot] = robot
@@ -286,6 +299,7 @@ class TagIntegrity:
         if tag_slot in self.judged_xy:
             self.parallax[tag_slot] = parallax_deg(position, np.concatenate([self.judged_xy[tag_slot], window_xy]))
         k = max((inflation(covariance, j) for j in self.jackknife.get(tag_slot, [])), default=1.0)
+        self.inflated[tag_slot] = k
         self.scale[tag_slot] = max(k, self.factor.get(tag_slot, 0.0))
         return self.weight.get(tag_slot, 1.0) / weight
 
@@ -314,6 +328,8 @@ class TagIntegrity:
             return f"its bearings scatter about it {spread:.1f} times their stds: its place does not explain them"
         if self.jackknife[tag_slot][0] is None:
             return f"its judged bearings were taken from fewer than {MIN_CELLS} places ({CELL_M:g} m cells)"
+        if self.checks.get(tag_slot, 0) < 2 and (k := self.inflated.get(tag_slot, 1.0)) > CONFIRM_INFLATION:
+            return f"its first jackknife inflated its covariance {k:.1f}-fold: a second must confirm it"
         return None
 
     def std_factor(self, tag_slots: np.ndarray) -> np.ndarray:
