@@ -8,15 +8,15 @@ span of `block` samples is judged on its own:
 - **quiet**: every axis's spread is at most `quiet_factor` times the spread measured standing
   still at the start (a base that drives shakes its IMU: a Jackal's gyro spreads 1-20 deg/s while
   it moves, 0.26 deg/s at rest), so a span that moves or changes its rate is never used;
-- **within the gate**: its mean is within `GATE_SIGMA` of the bias as predicted now (its last
-  estimate carried on at its rate, uncertain by the random walks since), so a steady turn (a turn
-  in place at its peak rate is as quiet as a stop) is never taken for a bias.
+- **within the gate**, axis by axis: its mean is within `GATE_SIGMA` of the bias as predicted
+  now (its last estimate carried on at its rate, uncertain by the random walks since), so a steady
+  turn (a turn in place at its peak rate is as quiet as a stop) is never taken for a bias.
 
 A span that passes is a measurement of the bias (its mean, with the white noise's variance over
-its samples) fused by a Kalman update. A robot that
-drives straight on a smooth floor passes too, rightly: it does not rotate either. What it cannot
-tell apart is an arc slower than the gate (about 0.02 deg/s while quiet spans come every half
-second, 1 deg a minute; some 0.05 deg/s after 25 s without one), which is then taken for bias.
+its samples) fused by a Kalman update. A robot that drives straight on a smooth floor passes too,
+rightly: it does not rotate either. What it cannot tell apart is an arc slower than the gate:
+about 0.02 deg/s while quiet spans come every half second, but up to 0.4 deg/s at a first stop
+25 s in, before the rate is pinned down.
 """
 
 from __future__ import annotations

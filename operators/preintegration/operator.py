@@ -202,7 +202,6 @@ class Preintegration(Operator):
             mean_f = np.array([0.0, 0.0, np.linalg.norm(mean_f)])
         else:
             self.bias = gyro.mean(axis=0)
-            self._track(gyro, stamp)
             self.levelling_std = self.params.accel_noise_m_s2_rthz / math.sqrt(max(span_s, 1e-3))
             log.info(
                 "preintegration: gyro bias %s rad/s and gravity %.3f m/s^2 from %.1f s standing still",
@@ -217,6 +216,8 @@ class Preintegration(Operator):
         self.gravity = np.array([0.0, 0.0, -float(np.linalg.norm(mean_f))])
         dts = np.diff([s[0] for s in self.still]) / 1e9
         self.nominal_dt = float(np.median(dts)) if len(dts) else None
+        if not moving:
+            self._track(gyro, stamp)
         self.epoch_attitude = self.attitude.copy()
         self.pending = [(*a, b[0]) for a, b in zip(self.still[:-1], self.still[1:], strict=True)]
         self.last = self.still[-1]
@@ -224,10 +225,10 @@ class Preintegration(Operator):
 
     def _track(self, gyro: np.ndarray, stamp: int) -> None:
         """Start tracking the gyro bias from the still start's samples (N, 3)."""
-        if not self.params.track_gyro_bias or len(gyro) < 2:
+        if not self.params.track_gyro_bias or not self.nominal_dt:
             return
         p = self.params
-        dt_s = float(np.median(np.diff([s[0] for s in self.still]))) / 1e9
+        dt_s = self.nominal_dt
         model = BiasModel(
             p.gyro_bias_walk_rad_s_rts,
             p.gyro_bias_rate_walk_rad_s2_rts,

@@ -328,7 +328,8 @@ class TagIntegrity:
             return f"its bearings scatter about it {spread:.1f} times their stds: its place does not explain them"
         if self.jackknife[tag_slot][0] is None:
             return f"its judged bearings were taken from fewer than {MIN_CELLS} places ({CELL_M:g} m cells)"
-        if self.checks.get(tag_slot, 0) < 2 and (k := self.inflated.get(tag_slot, 1.0)) > CONFIRM_INFLATION:
+        first_look = self.checks.get(tag_slot, 0) < 2
+        if first_look and (k := self.inflated.get(tag_slot, 1.0)) > CONFIRM_INFLATION:
             return f"its first jackknife inflated its covariance {k:.1f}-fold: a second must confirm it"
         return None
 
