@@ -371,3 +371,26 @@ def test_a_tag_whose_place_does_not_explain_its_bearings_is_not_weighed_down():
     trust.start(0, robot, angles, stds)
     trust.judge(0, wrong, np.eye(2) * 1e-6, NOWHERE, HUBER, 1.0)
     assert trust.factor[0] > MAX_VARIANCE_FACTOR and trust.weight.get(0, 1.0) == 1.0
+
+
+def test_a_tag_on_its_way_keeps_its_weight_until_it_settles():
+    """An estimate that moved since its last jackknife by more than one std of what the jackknives
+    say it is uncertain by is still on its way (the robot positions they hold fixed were pulled
+    with it): its weight is not lowered then, and is once it holds still."""
+    robot = rectangle()
+    stds = np.full(len(robot), math.radians(2.0))
+    angles = bearings(robot, TAG, np.random.default_rng(3).normal(0.0, math.radians(1.0), len(robot)))
+    estimate = fit(robot, angles, stds, TAG)
+    wide = naive_covariance(estimate, robot, stds) * 50.0
+    """a window covariance that covers the jackknives many times over: the weight would go down"""
+    trust = TagIntegrity()
+    trust.start(0, robot, angles, stds)
+    trust.weight[0] = 64.0
+    trust.judge(0, estimate - np.array([0.3, 0.0]), wide, NOWHERE, HUBER, 1.0)
+    assert trust.weight[0] == pytest.approx(64.0 / WEIGHT_STEP), "the first jackknife has nothing to compare with"
+    trust.due[0] = 0
+    trust.judge(0, estimate, wide, NOWHERE, HUBER, 1.0)
+    assert trust.weight[0] == pytest.approx(64.0 / WEIGHT_STEP), "moved 30 cm against a jackknife of centimetres: held"
+    trust.due[0] = 0
+    trust.judge(0, estimate, wide, NOWHERE, HUBER, 1.0)
+    assert trust.weight[0] == pytest.approx(64.0 / WEIGHT_STEP**2), "still: lowered by a step"

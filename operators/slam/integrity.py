@@ -207,6 +207,16 @@ def disagreeing(
     return again
 
 
+def _moved_beyond(moved: np.ndarray, covering: np.ndarray | None) -> bool:
+    """Whether a step `moved` (2,) is beyond one std of a covering jackknife covariance."""
+    if covering is None or not np.all(np.isfinite(covering)):
+        return False
+    try:
+        return float(moved @ np.linalg.solve(covering, moved)) > 1.0
+    except np.linalg.LinAlgError:
+        return True
+
+
 def cover_ratio(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
     """The least k with k covariance >= jackknife, below 1 when the covariance already covers it
     (1 without a jackknife, infinite when the jackknife is)."""
@@ -248,6 +258,8 @@ class TagIntegrity:
     """per slot: the spread (deg) of its judged bearings' directions seen from its estimate"""
     scale: dict[int, float] = field(default_factory=dict)
     """per slot: the factor its window covariance is published with (`judge`)"""
+    judged_at: dict[int, np.ndarray] = field(default_factory=dict)
+    """per slot: its estimate at its latest jackknife"""
     weight: dict[int, float] = field(default_factory=dict)
     """per slot: how much the window multiplies its bearings' variance, so that its covariance is
     the jackknives' (`judge`): bearings that err alike carry that much less information, and the
@@ -293,7 +305,9 @@ class TagIntegrity:
                 self.jackknife[tag_slot] = [covering(j) for j in spreads]
                 self.checks[tag_slot] = self.checks.get(tag_slot, 0) + (spreads[0] is not None)
                 self.factor[tag_slot] = variance_factor(position, robot, angles, stds, aoa_std_scale)
-                self._reweigh(tag_slot, covariance, [None if j is None else j[0] for j in spreads])
+                moved = position - self.judged_at.get(tag_slot, position)
+                self._reweigh(tag_slot, covariance, [None if j is None else j[0] for j in spreads], moved)
+                self.judged_at[tag_slot] = position.copy()
                 self.judged_xy[tag_slot] = robot
                 self.due[tag_slot] = EVERY_BEARINGS
         if tag_slot in self.judged_xy:
@@ -303,15 +317,21 @@ class TagIntegrity:
         self.scale[tag_slot] = max(k, self.factor.get(tag_slot, 0.0))
         return self.weight.get(tag_slot, 1.0) / weight
 
-    def _reweigh(self, tag_slot: int, covariance: np.ndarray, spreads: list[np.ndarray | None]) -> None:
+    def _reweigh(
+        self, tag_slot: int, covariance: np.ndarray, spreads: list[np.ndarray | None], moved: np.ndarray
+    ) -> None:
         """Move the tag's `weight` toward what makes the window's covariance cover the jackknives'
         estimates (`spreads`, not scaled to cover; a size too few cells span counts as covered),
         by at most WEIGHT_STEP; not while its place does not explain its bearings (then the
-        estimate is wrong, not its covariance) or a jackknife is unbounded."""
+        estimate is wrong, not its covariance) or a jackknife is unbounded. Nor is it lowered while
+        the estimate is on its way: `moved` since the last jackknife by more than one std of what
+        the jackknives say it is uncertain by (the robot positions they hold fixed move with it)."""
         if self.factor[tag_slot] > MAX_VARIANCE_FACTOR:
             return
         ratio = max((cover_ratio(covariance, j) for j in spreads), default=1.0)
         if not math.isfinite(ratio):
+            return
+        if ratio < 1.0 and any(_moved_beyond(moved, c) for c in self.jackknife[tag_slot]):
             return
         step = min(max(ratio, 1 / WEIGHT_STEP), WEIGHT_STEP)
         self.weight[tag_slot] = min(max(self.weight.get(tag_slot, 1.0) * step, 1.0), MAX_WEIGHT)
