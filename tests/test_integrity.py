@@ -184,8 +184,10 @@ def test_a_tag_is_judged_on_the_bearings_it_has_when_due():
     trust.judge(0, TAG, cov, NOWHERE, HUBER, 1.0)
     first = trust.scale[0]
     assert first > 1.0 and trust.due[0] == EVERY_BEARINGS
-    np.testing.assert_allclose(trust.scaled(np.stack([cov, cov]))[0], first * cov)
-    np.testing.assert_array_equal(trust.scaled(np.stack([cov, cov]))[1], cov)  # a tag not judged keeps its own
+    np.testing.assert_allclose(trust.scaled(np.stack([cov, cov]), 0.0)[0], first * cov)
+    np.testing.assert_array_equal(trust.scaled(np.stack([cov, cov]), 0.0)[1], cov)  # a tag not judged keeps its own
+    source = trust.scaled(np.stack([cov, cov]), 0.05)
+    np.testing.assert_allclose(source, [first * cov + 0.05**2 * np.eye(2), cov + 0.05**2 * np.eye(2)])
     for r, a, s in zip(robot[100 : 100 + EVERY_BEARINGS - 1], angles[100:], stds[100:], strict=False):
         trust.add(0, r, float(a), float(s))
     trust.judge(0, TAG, cov, NOWHERE, HUBER, 1.0)
@@ -195,7 +197,7 @@ def test_a_tag_is_judged_on_the_bearings_it_has_when_due():
     trust.judge(0, TAG, cov, NOWHERE, HUBER, 1.0)
     assert trust.due[0] == EVERY_BEARINGS and len(trust.seen[0]) == 100 + EVERY_BEARINGS
     trust.scale[0] = math.inf
-    assert np.all(np.isinf(trust.scaled(cov[None])[0])), "a tag the jackknife cannot pin is published unlocalized"
+    assert np.all(np.isinf(trust.scaled(cov[None], 0.05)[0])), "a tag the jackknife cannot pin is published unlocalized"
 
 
 def test_a_tag_is_published_only_once_judged_from_enough_places_and_parallax():

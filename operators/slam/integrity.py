@@ -42,6 +42,14 @@ image blends into every burst): so the published covariance is also at least the
 the variance factor, the square of the robust spread of the residuals in the bursts' own stds,
 when that is above 1 (`paper` seed 2: the NLOS tag 3% of its estimates beyond 3 sigma -> 0%).
 
+Nor can it see a bias every view shares, and a tag on a wall has one: its image in the wall, a
+few tens of centimetres behind it, blends into every burst. Two paths a small angle apart read as one
+between them, by how much depending on their phase difference, which the robot sweeps when it moves
+toward the wall and hardly at all when it drives along it (`paper` seed 6 in clutter: a tag 0.25 m
+from a wall, passed along the wall at 0.7 m on both laps, read 2-5 deg toward the wall from either
+side, both laps alike; published 20 cm off with a 6 cm std). So the published covariance adds
+`WindowSettings.source_std_m` in every direction.
+
 And a tag is published as localized only once it has a verdict (`TagIntegrity.verdict`):
 MIN_VERDICT_BEARINGS of its bearings left the window and were judged, they span MIN_PARALLAX_DEG
 seen from the estimate, the estimate explains them (at most half beyond 3 of their stds:
@@ -363,10 +371,12 @@ class TagIntegrity:
                 per_slot[t] = w
         return np.sqrt(per_slot[slots])
 
-    def scaled(self, covariances: np.ndarray) -> np.ndarray:
-        """The tags' covariances (tags, 2, 2) as published: each scaled by its `scale`."""
-        out = covariances.copy()
+    def scaled(self, covariances: np.ndarray, source_std_m: float) -> np.ndarray:
+        """The tags' covariances (tags, 2, 2) as published: each scaled by its `scale`, plus
+        `source_std_m` squared in every direction (where its signal appears to come from, which no
+        number of bearings tells from where it is: `WindowSettings.source_std_m`)."""
+        out = covariances + source_std_m**2 * np.eye(2)
         for t, k in self.scale.items():
             if t < len(out):
-                out[t] = out[t] * k if np.isfinite(k) else np.inf
+                out[t] = covariances[t] * k + source_std_m**2 * np.eye(2) if np.isfinite(k) else np.inf
         return out

@@ -359,7 +359,7 @@ class Slam(Operator):
         the integrity check (integrity.TagIntegrity), localized once it has a verdict and its largest
         std is within `observable_std_m`; the window itself goes on with its own."""
         w = self.window
-        covariance = w.integrity.scaled(w.tag_covariance)
+        covariance = w.integrity.scaled(w.tag_covariance, w.settings.source_std_m)
         judged = np.array([w.integrity.verdict(t) is None for t in range(len(covariance))], bool)
         return covariance, judged & (largest_std_m(covariance) <= w.settings.observable_std_m)
 
