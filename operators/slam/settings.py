@@ -66,13 +66,14 @@ class WindowSettings(Checked):
     """how much of the tag's prior information is kept at such a reset"""
     observable_std_m: PositiveFloat = 0.5
     """a tag is reported localized once its position's largest standard deviation is below this"""
-    source_std_m: NonNegativeFloat = 0.05
+    source_std_m: NonNegativeFloat = 0.1
     """how far (1 sigma, in every direction) where a tag's signal appears to come from may be from
-    where it is, added to every published tag covariance: a tag within w of a wall of amplitude
-    reflection rho blends with its image 2w behind it and reads up to about 2 w rho off across the
-    bearing, an error that averages out only where the robot's motion sweeps the two paths' phase
-    difference (toward the wall, not along it). Tags on walls (w 0.1-0.3 m, rho 0.3-0.5): 0.05 m;
-    0 for tags in the open (integrity.py)"""
+    where it is, added to every published tag covariance: a tag w in front of a wall of amplitude
+    reflection rho blends with its image 2w behind it, and reads up to 2 w rho d/d' off across the
+    bearing (d, d' the distances to the tag and to its image), an error that averages out only where
+    the robot's motion sweeps the two paths' phase difference (toward the wall, not along it).
+    Tags on walls as in the paper (w 0.25 m, rho 0.5, d/d' about 0.6 where they are seen from): up
+    to 0.15 m, 0.1 m rms over the phase. 0 for tags in the open (integrity.py)"""
     aoa_std_scale: PositiveFloat = 4.0
     """multiplies each AoA's std in the window (not in the search for a tag, which compares bearings
     spread over the whole run): the operator's std describes one burst, but consecutive bursts of a
