@@ -1,15 +1,17 @@
 """Cost against scale: the default pipeline's run time against the dataset's length (3, 10 and 30
 minutes of the `paper` scenario: 2, 7 and 20 laps) and against the number of tags (4, 8 and 15
 along the walls of `long_hall`; 15 is what channel 165's excitation allows, `channel_plan.max_tags`),
-one run each, so users see how the cost grows. Each row: simulated seconds, the run's wall-clock
-seconds (one process, `rover run`, outputs and figures included) and real-time factor, seconds of
-run per minute of data, the SLAM's and the AoA's CPU (run.json's profile), the SLAM updates, and
-the errors."""
+so users see how the cost grows. Each case runs in one process (`--workers 1`) and then in the
+workers `rover run` chooses for this machine (their outputs are the same: tests/test_workers.py).
+Each row: simulated seconds, the wall-clock seconds of each run (`rover run`, outputs and figures
+included) and their real-time factors, seconds of run per minute of data, the SLAM's and the AoA's
+CPU and the SLAM updates (the one-process run's run.json and timing.json), and the errors."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -59,6 +61,14 @@ def hall_with_tags(count: int, folder: Path) -> Path:
     return path
 
 
+def timed_run(dataset: Path, out: Path, workers: list[str]) -> float:
+    """Wall-clock seconds of `rover run` on `dataset` (workers from `workers`, else its own choice)."""
+    env = {k: v for k, v in os.environ.items() if k != "ROVER_WORKERS"}
+    start = time.perf_counter()
+    subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out), *workers], check=True, env=env)
+    return time.perf_counter() - start
+
+
 def run_case(tmp: Path, name: str, scenario: str, sets: list[str]) -> dict:
     dataset = tmp / f"{name.replace(' ', '_')}.mcap"
     args = [*ROVER, "simulate", "--scenario", scenario, "--seed", "1", "-o", str(dataset)]
@@ -66,9 +76,8 @@ def run_case(tmp: Path, name: str, scenario: str, sets: list[str]) -> dict:
     info = subprocess.run([*ROVER, "info", str(dataset), "--json"], capture_output=True, text=True, check=True)
     data_s = float(json.loads(info.stdout)["duration_s"])
     out = tmp / f"run-{name.replace(' ', '_')}"
-    start = time.perf_counter()
-    subprocess.run([*ROVER, "run", "--dataset", str(dataset), "--output", str(out), "--workers", "1"], check=True)
-    run_s = time.perf_counter() - start
+    run_s = timed_run(dataset, out, ["--workers", "1"])
+    workers_s = timed_run(dataset, tmp / f"workers-{name.replace(' ', '_')}", [])
     metrics = json.loads((out / "metrics.json").read_text())
     profile = json.loads((out / "run.json").read_text())["profile"]
     updates = json.loads((out / "timing.json").read_text())["slam.update"]
@@ -79,6 +88,8 @@ def run_case(tmp: Path, name: str, scenario: str, sets: list[str]) -> dict:
         "run_s": run_s,
         "realtime_factor": data_s / run_s,
         "run_s_per_data_min": run_s / (data_s / 60),
+        "workers_run_s": workers_s,
+        "workers_realtime_factor": data_s / workers_s,
         "slam_cpu_s": profile["slam"]["cpu_s"],
         "aoa_cpu_s": profile["aoa"]["cpu_s"],
         "slam_updates": updates["count"],
@@ -102,13 +113,15 @@ def main() -> int:
         for count in HALL_TAGS:
             rows.append(run_case(tmp, f"long_hall {count} tags", str(hall_with_tags(count, tmp)), []))
     print(
-        f"{'case':<20}{'data':>8}{'run':>8}{'x real':>8}{'s/min':>7}{'SLAM cpu':>10}{'AoA cpu':>9}"
+        f"{'case':<20}{'data':>8}{'run':>8}{'x real':>8}{'s/min':>7}{'workers':>9}{'x real':>8}"
+        f"{'SLAM cpu':>10}{'AoA cpu':>9}"
         f"{'updates':>9}{'median':>8}{'robot':>8}{'LOS':>7}  tags"
     )
     for r in rows:
         print(
             f"{r['case']:<20}{r['data_s']:>7.0f}s{r['run_s']:>7.1f}s{r['realtime_factor']:>7.1f}x"
-            f"{r['run_s_per_data_min']:>7.1f}{r['slam_cpu_s']:>9.1f}s{r['aoa_cpu_s']:>8.1f}s{r['slam_updates']:>9,}"
+            f"{r['run_s_per_data_min']:>7.1f}{r['workers_run_s']:>8.1f}s{r['workers_realtime_factor']:>7.1f}x"
+            f"{r['slam_cpu_s']:>9.1f}s{r['aoa_cpu_s']:>8.1f}s{r['slam_updates']:>9,}"
             f"{r['slam_update_median_ms']:>6.1f}ms{r['robot_mean_m'] * 100:>6.1f}cm{r['los_tags_mean_m'] * 100:>5.1f}cm"
             f"  {r['tags_localized']}/{r['tags']} localized"
         )
