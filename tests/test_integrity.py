@@ -396,3 +396,8 @@ def test_a_tag_on_its_way_keeps_its_weight_until_it_settles():
     trust.due[0] = 0
     trust.judge(0, estimate, wide, NOWHERE, HUBER, 1.0)
     assert trust.weight[0] == pytest.approx(64.0 / WEIGHT_STEP**2), "still: lowered by a step"
+    narrow = naive_covariance(estimate, robot, stds) / 50.0
+    """a window covariance the jackknives are far beyond: the weight goes up, moving or not"""
+    trust.due[0] = 0
+    trust.judge(0, estimate + np.array([0.3, 0.0]), narrow, NOWHERE, HUBER, 1.0)
+    assert trust.weight[0] == pytest.approx(64.0 / WEIGHT_STEP), "on its way, and raised"

@@ -50,6 +50,11 @@ from a wall, passed along the wall at 0.7 m on both laps, read 2-5 deg toward th
 side, both laps alike; published 20 cm off with a 6 cm std). So the published covariance adds
 `WindowSettings.source_std_m` in every direction.
 
+Nor can it see a tag's own bearings pulling the robot: it holds the robot positions fixed, and
+bearings that pull the robot pull those positions with the tag, so every leave-one-out estimate
+agrees. So a tag's weight is not lowered while its estimate is on its way (moved since the last
+jackknife by more than one std of what the jackknives allow: `_reweigh`).
+
 And a tag is published as localized only once it has a verdict (`TagIntegrity.verdict`):
 MIN_VERDICT_BEARINGS of its bearings left the window and were judged, they span MIN_PARALLAX_DEG
 seen from the estimate, the estimate explains them (at most half beyond 3 of their stds:
@@ -216,13 +221,13 @@ def disagreeing(
 
 
 def _moved_beyond(moved: np.ndarray, covering: np.ndarray | None) -> bool:
-    """Whether a step `moved` (2,) is beyond one std of a covering jackknife covariance."""
-    if covering is None or not np.all(np.isfinite(covering)):
+    """Whether a step `moved` (2,) is beyond one std of a covering jackknife covariance (a singular
+    one: across its flat direction, any step is)."""
+    if covering is None or not np.all(np.isfinite(covering)) or not np.any(moved):
         return False
-    try:
-        return float(moved @ np.linalg.solve(covering, moved)) > 1.0
-    except np.linalg.LinAlgError:
-        return True
+    return float(moved @ np.linalg.pinv(covering) @ moved) > 1.0 or not np.allclose(
+        covering @ np.linalg.pinv(covering) @ moved, moved
+    )
 
 
 def cover_ratio(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
@@ -275,10 +280,11 @@ class TagIntegrity:
 
     def start(self, tag_slot: int, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray) -> None:
         """A tag found by the search: its bearings that already left the window, as the search chose
-        their candidates; the jackknife is due at once."""
+        their candidates; the jackknife is due at once, with nothing earlier to say how far it moved."""
         rows = np.column_stack([robot, angles, stds]) if len(robot) else np.zeros((0, 4))
         self.seen[tag_slot] = [tuple(r) for r in rows[-HISTORY_BEARINGS:].tolist()]
         self.due[tag_slot] = 0
+        self.judged_at.pop(tag_slot, None)
 
     def add(self, tag_slot: int, robot_xy: np.ndarray, angle: float, std: float) -> None:
         """A bearing of a localized tag left the window with this robot position and candidate."""

@@ -356,7 +356,8 @@ class Slam(Operator):
 
     def _published(self) -> tuple[np.ndarray, np.ndarray]:
         """The tags' covariances as published and whether each is localized: the window's scaled up by
-        the integrity check (integrity.TagIntegrity), localized once it has a verdict and its largest
+        the integrity check (integrity.TagIntegrity) plus `source_std_m` in every direction, localized
+        once it has a verdict and its largest
         std is within `observable_std_m`; the window itself goes on with its own."""
         w = self.window
         covariance = w.integrity.scaled(w.tag_covariance, w.settings.source_std_m)
@@ -451,11 +452,12 @@ class Slam(Operator):
             elif not localized[slot]:
                 scale = w.integrity.scale.get(slot, 1.0)
                 log.warning(
-                    "slam: tag %d not localized at the end: its position's largest std is %.2f m (%.2f m at most)%s",
+                    "slam: tag %d not localized at the end: its position's largest std is %.2f m (%.2f m at most)%s%s",
                     tag_id,
                     float(largest_std_m(published[slot : slot + 1])[0]),
                     w.settings.observable_std_m,
                     f", the window's scaled by {math.sqrt(scale):.1f} by the integrity check" if scale > 1 else "",
+                    f", with source_std_m {w.settings.source_std_m:g} m added" if w.settings.source_std_m else "",
                 )
         if self.failures:
             log.warning(

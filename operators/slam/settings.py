@@ -5,7 +5,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from rover.pipeline.params import Checked, Fraction, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt, Range
+from rover.pipeline.params import (
+    Checked,
+    Fraction,
+    NonNegativeFloat,
+    NonNegativeInt,
+    ParamValueError,
+    PositiveFloat,
+    PositiveInt,
+    Range,
+)
 
 
 @dataclass(frozen=True)
@@ -92,3 +101,12 @@ class WindowSettings(Checked):
     that may rotate while it drifts, such as a drone)"""
     zero_velocity_std_m_s: PositiveFloat = 0.02
     """the velocity of such an epoch"""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.source_std_m >= self.observable_std_m:
+            raise ParamValueError(
+                "source_std_m",
+                f"{self.source_std_m:g} m is not below observable_std_m ({self.observable_std_m:g} m): no tag "
+                "could ever be published as localized",
+            )
