@@ -225,9 +225,8 @@ def _moved_beyond(moved: np.ndarray, covering: np.ndarray | None) -> bool:
     one: across its flat direction, any step is)."""
     if covering is None or not np.all(np.isfinite(covering)) or not np.any(moved):
         return False
-    return float(moved @ np.linalg.pinv(covering) @ moved) > 1.0 or not np.allclose(
-        covering @ np.linalg.pinv(covering) @ moved, moved
-    )
+    inverse = np.linalg.pinv(covering)
+    return float(moved @ inverse @ moved) > 1.0 or not np.allclose(covering @ inverse @ moved, moved)
 
 
 def cover_ratio(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
@@ -381,8 +380,8 @@ class TagIntegrity:
         """The tags' covariances (tags, 2, 2) as published: each scaled by its `scale`, plus
         `source_std_m` squared in every direction (where its signal appears to come from, which no
         number of bearings tells from where it is: `WindowSettings.source_std_m`)."""
-        out = covariances + source_std_m**2 * np.eye(2)
+        out = covariances.copy()
         for t, k in self.scale.items():
             if t < len(out):
-                out[t] = covariances[t] * k + source_std_m**2 * np.eye(2) if np.isfinite(k) else np.inf
-        return out
+                out[t] = out[t] * k if np.isfinite(k) else np.inf
+        return out + source_std_m**2 * np.eye(2)
