@@ -21,13 +21,14 @@ def run_summary(out: Path) -> list[str]:
     lines.append(f"run {run.get('status', '?')}: {len(stamps):,} poses{span}, {run.get('received', 0):,} messages")
     tags = _tags(out / "tags.csv")
     if tags:
-        known = [t for t, state in tags if state == LOCALIZED]
-        lost = [t for t, state in tags if state == EARLIER]
-        never = [t for t, state in tags if state == NEVER]
+        known = [t for t, state, _ in tags if state == LOCALIZED]
+        lost = [t for t, state, _ in tags if state == EARLIER]
+        never = [t for t, state, _ in tags if state == NEVER]
         notes = [f"never localized: {', '.join(never)}"] if never else []
         notes += [f"localized earlier, not at the end: {', '.join(lost)}"] if lost else []
         shown = f" ({'; '.join(notes)})" if notes else ""
         lines.append(f"tags localized at the end: {len(known)} of {len(tags)} heard{shown}")
+        lines += [f"  tag {t}: {why}" for t, state, why in tags if state != LOCALIZED and why]
     metrics_file = out / "metrics.json"
     if metrics_file.is_file():
         metrics = json.loads(metrics_file.read_text(encoding="utf-8"))
@@ -53,10 +54,17 @@ LOCALIZED, EARLIER, NEVER = "localized", "earlier", "never"
 before but not at the end (a position, observable 0: the SLAM says why), or never localized"""
 
 
-def _tags(path: Path) -> list[tuple[str, str]]:
-    """(id, state) of every tag in a tags.csv."""
+def _tags(path: Path) -> list[tuple[str, str, str]]:
+    """(id, state, why: its status and reason, when the SLAM sent them) of every tag in a tags.csv."""
     if not path.is_file():
         return []
     with path.open(encoding="utf-8", newline="") as f:
         rows = list(csv.DictReader(f))
-    return [(r["id"], LOCALIZED if r.get("observable") == "1" else EARLIER if r.get("x") else NEVER) for r in rows]
+    return [
+        (
+            r["id"],
+            LOCALIZED if r.get("observable") == "1" else EARLIER if r.get("x") else NEVER,
+            f"{r['status']}: {r.get('reason', '')}" if r.get("status") else "",
+        )
+        for r in rows
+    ]

@@ -57,13 +57,25 @@ TAG_COLUMNS = (
     "first_heard_s",
     "first_localized_s",
     "last_heard_s",
+    "status",
+    "reason",
 )
+STATES = ("heard", "ambiguous", "judging", "contradicted", "uncertain", "localized")
+"""tags.csv's `status`: rover_msgs/msg/TagStatus's states by value"""
 
 
 def seconds(ns: int | None) -> str:
     if ns is None:
         return ""
     return f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
+
+
+def status_columns(status: Any) -> list[str]:
+    """tags.csv's status and reason of a TagStatus (empty without one), the reason quoted as CSV does."""
+    if status is None:
+        return ["", ""]
+    state = STATES[status.state] if status.state < len(STATES) else str(status.state)
+    return [state, '"' + status.reason.replace('"', '""') + '"']
 
 
 def tum_line(msg: Any) -> str:
@@ -95,6 +107,7 @@ class _TagRecord:
     last_heard: int | None = None
     first_localized: int | None = None
     last: Any = None
+    status: Any = None
 
 
 @dataclass(frozen=True)
@@ -120,6 +133,11 @@ class RunOutputs(Operator):
             doc="for when each tag was heard, and the AoA metrics: the SLAM's bearings (those with a chosen candidate)",
         ),
         "timing": In("rover_msgs/msg/Timing", required=False, doc="wall-clock timings, summarised in timing.json"),
+        "status": In(
+            "rover_msgs/msg/TagStatus",
+            required=False,
+            doc="each tag's latest state and why (slam/status): tags.csv's status and reason",
+        ),
     }
     Params = RunOutputsParams
 
@@ -158,6 +176,8 @@ class RunOutputs(Operator):
             self.timing.setdefault(msg.stage, []).append(msg.wall_s)
         elif port == "trajectory":
             self.final.append(msg)
+        elif port == "status":
+            self.tags.setdefault(msg.id, _TagRecord()).status = msg
         elif port == "pose":
             self.live.append(msg)
         elif port == "aoa":
@@ -201,6 +221,7 @@ class RunOutputs(Operator):
                         seconds(r.first_heard),
                         seconds(r.first_localized),
                         seconds(r.last_heard),
+                        *status_columns(r.status),
                     ]
                 )
                 + "\n"

@@ -3,12 +3,15 @@ and run.json says how every run ended."""
 
 from __future__ import annotations
 
+import csv
 import json
 import time
 
+import numpy as np
 import pytest
 from helpers import T0_NS
 
+from rover.cli.summary import run_summary
 from rover.drivers.run_outputs import RUN_FILES, RunOutputs, RunOutputsParams
 from rover.errors import OutputFailed
 from rover.formats.run_dir import FAILED_RUN_FILE
@@ -132,3 +135,36 @@ def test_metrics_that_cannot_be_computed_leave_the_run_complete_with_a_note(tmp_
     assert run["status"] == "complete" and "trajectory.tum" in run["files"] and "metrics.json" not in run["files"]
     assert len(run["notes"]) == 1 and run["notes"][0].startswith("no metrics: ")
     assert "do not overlap in time" in run["notes"][0]
+
+
+def test_tags_csv_says_each_tags_latest_status_and_why_and_the_summary_repeats_it(tmp_path):
+    """A tag's last TagStatus goes into tags.csv (its reason quoted: it has commas and quotes), and
+    the summary `rover run` prints names each tag not localized with it."""
+
+    def status(tag_id: int, state: int, reason: str):
+        return make("rover_msgs/msg/TagStatus", header=header(T0_NS, "world"), id=tag_id, state=state, reason=reason)
+
+    def tag(tag_id: int, observable: bool):
+        return make("rover_msgs/msg/Tag", id=tag_id, observable=observable, covariance_xy=np.eye(2).ravel() * 0.01)
+
+    ambiguous = 'the search\'s best place (1.00, 2.00) m is not clear: another "place" fits'
+    tags = [tag(1, True), tag(2, False)]
+    op = RunOutputs(RunOutputsParams(out=str(tmp_path / "out")))
+    op.start()
+    run_operator(
+        op,
+        {
+            "trajectory": [pose(i) for i in range(3)],
+            "pose": [pose(i) for i in range(3)],
+            "tags": [make("rover_msgs/msg/TagArray", header=header(T0_NS, "world"), tags=tags)],
+            "status": [status(1, 2, "judging"), status(1, 5, "std 0.1 m"), status(2, 1, ambiguous)],
+        },
+    )
+    op.close()
+    op.report(RunOutcome("complete", "", {}))
+    with (tmp_path / "out" / "tags.csv").open(newline="") as f:
+        rows = {r["id"]: r for r in csv.DictReader(f)}
+    assert (rows["1"]["status"], rows["1"]["reason"]) == ("localized", "std 0.1 m")
+    assert (rows["2"]["status"], rows["2"]["reason"]) == ("ambiguous", ambiguous)
+    assert f"  tag 2: ambiguous: {ambiguous}" in run_summary(tmp_path / "out")
+    assert not [line for line in run_summary(tmp_path / "out") if line.startswith("  tag 1")]

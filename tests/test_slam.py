@@ -14,6 +14,7 @@ from test_jumps import burst_candidates
 from rover.geometry import quaternion_from_yaw
 from rover.messages import header, make
 from rover.operators.slam.operator import Slam, SlamParams
+from rover.operators.slam.tag_status import TagState
 from rover.testing import run_operator
 
 START_NS = 1_000_000_000
@@ -68,6 +69,25 @@ def feed(op: Slam, sc, measured, with_aoa: bool = True):
     return run_operator(op, {"aoa": aoas if with_aoa else [], "odometry": odometry})
 
 
+def statuses_agree_with_tags(out: list[Any]) -> dict[int, list[Any]]:
+    """Each tag's status messages, checked against the tags published: at every TagArray the status
+    last sent for each of its tags says localized exactly when it is published observable, and a
+    status is sent when the state changes (the end's may repeat a state with a new reason)."""
+    latest: dict[int, Any] = {}
+    sent: dict[int, list[Any]] = {}
+    for e in out:
+        if e.port == "status":
+            latest[e.msg.id] = e.msg
+            sent.setdefault(e.msg.id, []).append(e.msg)
+        elif e.port == "tags":
+            for t in e.msg.tags:
+                assert (latest[t.id].state == TagState.LOCALIZED) == t.observable, (t.id, latest[t.id].reason)
+    for msgs in sent.values():
+        states = [m.state for m in msgs[:-1]]
+        assert all(a != b for a, b in zip(states, states[1:], strict=False)) and all(m.reason for m in msgs)
+    return sent
+
+
 def test_outputs_per_epoch_and_tags_localized():
     """26 s: each tag's bearings that left the window must come from 5 places (1 m cells) for a
     verdict; in 20 s of the 2 m circle only the first tag's do."""
@@ -94,6 +114,8 @@ def test_outputs_per_epoch_and_tags_localized():
     assert len(timing) == len(by_port["diagnostics"]) and all(t.stage == "slam.update" and t.wall_s > 0 for t in timing)
     path = by_port["path"][-1].msg
     assert len(path.poses) == n
+    sent = statuses_agree_with_tags(out)
+    assert {i: msgs[-1].state for i, msgs in sent.items()} == dict.fromkeys([1, 2, 3, 4], TagState.LOCALIZED)
 
 
 def test_each_pose_goes_out_with_its_covariance():
@@ -126,7 +148,10 @@ def test_a_tag_seen_over_too_little_parallax_is_not_published_localized(caplog):
     assert math.hypot(first.position.x - sc.tags[0][0], first.position.y - sc.tags[0][1]) < 0.01
     assert math.sqrt(max(np.linalg.eigvalsh(op.window.tag_covariance[0]))) < 0.5
     assert not first.observable
-    assert "slam: tag 1 not localized at the end: its bearings span 8 deg seen from it (10 needed)" in caplog.text
+    why = "its bearings span 8 deg seen from it (10 needed)"
+    assert f"slam: tag 1 not localized at the end (judging): {why}" in caplog.text
+    last = statuses_agree_with_tags(out)[1][-1]
+    assert (last.state, last.reason) == (TagState.JUDGING, why)
 
 
 def test_imu_only_and_stationary_runs_do_not_crash(caplog):
@@ -205,6 +230,8 @@ def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
     final = [e.msg for e in out if e.port == "tags"][-1].tags
     assert [t.id for t in final if t.observable] == [1]
     assert math.hypot(final[0].position.x - 3.0, final[0].position.y - 2.0) < 0.2
+    states = [m.state for m in statuses_agree_with_tags(out)[1]]
+    assert states[0] == TagState.HEARD and states[-1] == TagState.LOCALIZED and TagState.JUDGING in states
 
 
 def test_paths_before_the_end_are_thinned_to_their_bound_and_the_last_is_whole():

@@ -349,6 +349,15 @@ class TagIntegrity:
         step = min(max(ratio, 1 / WEIGHT_STEP), WEIGHT_STEP)
         self.weight[tag_slot] = min(max(self.weight.get(tag_slot, 1.0) * step, 1.0), MAX_WEIGHT)
 
+    def contradicted(self, tag_slot: int) -> str | None:
+        """How its judged bearings scatter about its estimate beyond what their stds allow (None:
+        they do not, or were not judged yet)."""
+        factor = self.factor.get(tag_slot, 0.0)
+        if factor <= MAX_VARIANCE_FACTOR:
+            return None
+        spread = math.sqrt(factor)
+        return f"its bearings scatter about it {spread:.1f} times their stds: its place does not explain them"
+
     def verdict(self, tag_slot: int) -> str | None:
         """Why the tag may not be published as localized whatever its covariance (None: it may)."""
         if tag_slot not in self.parallax:
@@ -356,9 +365,8 @@ class TagIntegrity:
             return f"{left} of its bearings left the window, {MIN_VERDICT_BEARINGS} needed to judge it"
         if self.parallax[tag_slot] < MIN_PARALLAX_DEG:
             return f"its bearings span {self.parallax[tag_slot]:.0f} deg seen from it ({MIN_PARALLAX_DEG:.0f} needed)"
-        if self.factor[tag_slot] > MAX_VARIANCE_FACTOR:
-            spread = math.sqrt(self.factor[tag_slot])
-            return f"its bearings scatter about it {spread:.1f} times their stds: its place does not explain them"
+        if (scatter := self.contradicted(tag_slot)) is not None:
+            return scatter
         if self.jackknife[tag_slot][0] is None:
             return f"its judged bearings were taken from fewer than {MIN_CELLS} places ({CELL_M:g} m cells)"
         first_look = self.checks.get(tag_slot, 0) < 2

@@ -23,7 +23,7 @@ from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.slam.information import largest_std_m
 from rover.operators.slam.sliding_window import Edge, Epoch, SlidingWindow, WindowSettings, bias_jacobian
-from rover.operators.slam.tag_finder import why_waiting
+from rover.operators.slam.tag_status import TagState, TagStatus, tag_status
 from rover.pipeline.params import PositiveFloat, Range
 
 log = logging.getLogger("rover.slam")
@@ -135,6 +135,11 @@ class Slam(Operator):
             doc="the best path so far (final poses, thinned to path_max_poses but at the end, then the window)",
         ),
         "tags": Out("rover_msgs/msg/TagArray", doc="every tag heard, with its 2x2 covariance"),
+        "status": Out(
+            "rover_msgs/msg/TagStatus",
+            doc="a tag's state and why (heard, ambiguous, judging, contradicted, uncertain, localized) when it "
+            "changes, just before the tags that show it, and every tag's at the end",
+        ),
         "diagnostics": Out("rover_msgs/msg/SlamDiagnostics"),
         "timing": Out("rover_msgs/msg/Timing", doc="wall-clock time of each update, every reweighting pass included"),
         "bearings": Out(
@@ -169,6 +174,8 @@ class Slam(Operator):
         self.failures = 0
         self.unchained = 0
         self.found_sent = 0
+        self.status_sent: dict[int, TagStatus] = {}
+        """per tag id: the status last sent"""
         self.yaw_variance = 0.0
         """the heading's variance (rad^2) since the first epoch, summed from the odometry increments"""
 
@@ -291,7 +298,9 @@ class Slam(Operator):
         with_covariance = make("geometry_msgs/msg/PoseWithCovarianceStamped", header=pose.header)
         with_covariance.pose.pose, with_covariance.pose.covariance = pose.pose, covariance.ravel()
         yield Emit("pose_covariance", with_covariance, stamp)
-        yield Emit("tags", self._tags(stamp), stamp)
+        covariance, localized = self._published()
+        yield from self._statuses(stamp, covariance, localized, changed=lambda old, new: old.state != new.state)
+        yield Emit("tags", self._tags(stamp, covariance, localized), stamp)
         yield Emit(
             "diagnostics",
             make(
@@ -364,9 +373,24 @@ class Slam(Operator):
         judged = np.array([w.integrity.verdict(t) is None for t in range(len(covariance))], bool)
         return covariance, judged & (largest_std_m(covariance) <= w.settings.observable_std_m)
 
-    def _tags(self, stamp: int) -> Any:
+    def _statuses(self, stamp: int, covariance: np.ndarray, localized: np.ndarray, changed: Any):
+        """Each tag's status where `changed(last sent, now)` says so, or none was sent yet."""
+        for slot, tag_id in enumerate(self.window.tag_ids):
+            status = tag_status(self.window, slot, covariance[slot], bool(localized[slot]))
+            last = self.status_sent.get(tag_id)
+            if last is None or changed(last, status):
+                self.status_sent[tag_id] = status
+                msg = make(
+                    "rover_msgs/msg/TagStatus",
+                    header=header(stamp, "world"),
+                    id=tag_id,
+                    state=int(status.state),
+                    reason=status.reason,
+                )
+                yield Emit("status", msg, stamp)
+
+    def _tags(self, stamp: int, covariance: np.ndarray, observable: np.ndarray) -> Any:
         w = self.window
-        covariance, observable = self._published()
         tags = []
         for i, (tag_id, (x, y)) in enumerate(zip(w.tag_ids, w.tag_positions(), strict=True)):
             cov = np.nan_to_num(covariance[i], nan=1e12, posinf=1e12)
@@ -405,7 +429,9 @@ class Slam(Operator):
             w.find_tags()
             yield from self._update(stamp)
         yield Emit("path", self._path(stamp, complete=True), stamp)
-        yield Emit("tags", self._tags(stamp), stamp)
+        published, localized = self._published()
+        yield from self._statuses(stamp, published, localized, changed=lambda old, new: old != new)
+        yield Emit("tags", self._tags(stamp, published, localized), stamp)
         w.finals.extend(w.poses())
         w.left.extend(w.epochs)
         yield from self._finals(stamp)
@@ -434,31 +460,14 @@ class Slam(Operator):
             log.warning(
                 "slam: %d odometry increment(s) did not start at the previous epoch (chained anyway)", self.unchained
             )
-        published, localized = self._published()
         for slot, tag_id in enumerate(w.tag_ids):
             combination = w.locked(slot)
             if combination is not None:
                 log.info("slam: tag %d's chains held jump combination %d all run", tag_id, combination)
-            if not w.active[slot]:
-                heard, needed = w.finder.heard.get(slot, 0), w.finder.search.min_bearings
-                why = (
-                    why_waiting(w.finder.last[slot], w.finder.search)
-                    if slot in w.finder.last
-                    else f"{heard} of its bearings heard, {needed} needed before the search"
-                )
-                log.warning("slam: tag %d not localized: %s", tag_id, why)
-            elif (lacking := w.integrity.verdict(slot)) is not None:
-                log.warning("slam: tag %d not localized at the end: %s", tag_id, lacking)
-            elif not localized[slot]:
-                scale = w.integrity.scale.get(slot, 1.0)
-                log.warning(
-                    "slam: tag %d not localized at the end: its position's largest std is %.2f m (%.2f m at most)%s%s",
-                    tag_id,
-                    float(largest_std_m(published[slot : slot + 1])[0]),
-                    w.settings.observable_std_m,
-                    f", the window's scaled by {math.sqrt(scale):.1f} by the integrity check" if scale > 1 else "",
-                    f", with source_std_m {w.settings.source_std_m:g} m added" if w.settings.source_std_m else "",
-                )
+            status = self.status_sent[tag_id]
+            if status.state != TagState.LOCALIZED:
+                state = status.state.name.lower()
+                log.warning("slam: tag %d not localized at the end (%s): %s", tag_id, state, status.reason)
         if self.failures:
             log.warning(
                 "slam: %d of %d updates did not converge (kept the previous estimate)", self.failures, self.updates
