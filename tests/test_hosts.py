@@ -319,6 +319,7 @@ def test_three_hosts_under_mutual_tls_give_the_same_bytes_as_one_process(lab, tm
         "/rover/trajectory",
         "/rover/path",
         "/rover/tags",
+        "/rover/tag_status",
         "/rover/slam/diagnostics",
     }
     timing = json.loads((out / "timing.json").read_text())
