@@ -156,41 +156,47 @@ def _decode(
     length = int(counts.max())
     padded = np.zeros((len(tags), length, combos))
     padded[which, pos] = cost[order]
-    valid = np.arange(length)[None, :] < counts[:, None]
     rate = np.array([memory.switch_rate(int(t)) for t in tags])
     stay = -np.log1p(-np.minimum(rate, 0.999))[:, None]
     switch = -np.log(rate / max(combos - 1, 1))[:, None]
     last = np.array([lasts[int(t)] for t in tags])
     start = np.where(last[:, None] < 0, 0.0, np.where(np.arange(combos)[None, :] == last[:, None], stay, switch))
-    # Viterbi: from each combination, stay or come from the best of all at the switch cost
+    # Viterbi: from each combination, stay or come from the best of all at the switch cost; a tag's
+    # rows past its last hold padding, never read back
     best = start + padded[:, 0]
-    back = np.zeros((len(tags), length, combos), dtype=int)
+    history = np.empty((len(tags), length, combos))
+    history[:, 0] = best
     for k in range(1, length):
-        leader = np.argmin(best, axis=1)[:, None]
-        kept_cost, moved_cost = best + stay, np.min(best, axis=1, keepdims=True) + switch
-        step = np.minimum(kept_cost, moved_cost) + padded[:, k]
-        back[:, k] = np.where(kept_cost <= moved_cost, np.arange(combos)[None, :], leader)
-        best = np.where(valid[:, k, None], step, best)
+        best = np.minimum(best + stay, best.min(axis=1, keepdims=True) + switch) + padded[:, k]
+        history[:, k] = best
+    # the way back: row k-1 kept row k's combination unless coming from its best was cheaper
+    kept = history + stay[:, :, None] <= history.min(axis=2, keepdims=True) + switch[:, :, None]
+    leaders = history.argmin(axis=2)
+    ends = counts - 1
+    rows = np.arange(len(tags))
     path = np.zeros((len(tags), length), dtype=int)
-    s = np.argmin(best, axis=1)
+    s = leaders[rows, ends]
     for k in range(length - 1, -1, -1):
         path[:, k] = s
-        s = np.where(valid[:, k] & (k > 0), back[np.arange(len(tags)), k, s], s)
-    # forward-backward in scaled probabilities (each step normalized), the same transitions
+        if k:
+            s = np.where(k <= ends, np.where(kept[rows, k - 1, s], s, leaders[:, k - 1]), s)
+    # forward-backward in scaled probabilities (each step normalized), the same transitions; from a
+    # normalized vector p the chance of each next combination is p_switch + p (p_stay - p_switch)
     like = np.exp(-(padded - padded.min(axis=2, keepdims=True)))
     p_stay, p_switch = np.exp(-stay), np.exp(-switch)
+    gain = p_stay - p_switch
     fwd = np.empty((len(tags), length, combos))
     a = np.exp(-(start - start.min(axis=1, keepdims=True))) * like[:, 0]
     fwd[:, 0] = a / a.sum(axis=1, keepdims=True)
     for k in range(1, length):
-        prev = fwd[:, k - 1]
-        a = (prev * p_stay + (1.0 - prev) * p_switch) * like[:, k]
-        fwd[:, k] = np.where(valid[:, k, None], a / a.sum(axis=1, keepdims=True), prev)
+        a = (p_switch + fwd[:, k - 1] * gain) * like[:, k]
+        fwd[:, k] = a / a.sum(axis=1, keepdims=True)
+    # backward: a tag's last row starts from ones (its padding's like is 1, which keeps it uniform)
     bwd = np.ones((len(tags), length, combos))
     for k in range(length - 2, -1, -1):
         b = bwd[:, k + 1] * like[:, k + 1]
-        b = b * p_stay + (b.sum(axis=1, keepdims=True) - b) * p_switch
-        bwd[:, k] = np.where(valid[:, k + 1, None], b / b.sum(axis=1, keepdims=True), 1.0)
+        b = b.sum(axis=1, keepdims=True) * p_switch + b * gain
+        bwd[:, k] = b / b.sum(axis=1, keepdims=True)
     post = fwd * bwd
     post /= post.sum(axis=2, keepdims=True)
     state = np.empty(n, dtype=int)

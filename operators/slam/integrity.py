@@ -231,15 +231,21 @@ def _moved_beyond(moved: np.ndarray, covering: np.ndarray | None) -> bool:
 
 def cover_ratio(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:
     """The least k with k covariance >= jackknife, below 1 when the covariance already covers it
-    (1 without a jackknife, infinite when the jackknife is)."""
+    (1 without a jackknife or with a singular covariance, infinite when the jackknife is): the
+    largest root of det(jackknife - k covariance) = 0, in closed form for 2x2 (LAPACK's call costs
+    ten times more, on every tag at every update)."""
     if jackknife is None:
         return 1.0
     if not np.all(np.isfinite(jackknife)):
         return float("inf")
-    try:
-        return float(np.linalg.eigvals(np.linalg.solve(covariance, jackknife)).real.max())
-    except np.linalg.LinAlgError:
+    (c11, c12), (c21, c22) = covariance.tolist()
+    (j11, j12), (j21, j22) = jackknife.tolist()
+    a = c11 * c22 - c12 * c21
+    if not a > 0.0:
         return 1.0
+    b = c11 * j22 + c22 * j11 - c12 * j21 - c21 * j12
+    disc = b * b - 4.0 * a * (j11 * j22 - j12 * j21)
+    return (b + math.sqrt(max(disc, 0.0))) / (2.0 * a)
 
 
 def inflation(covariance: np.ndarray, jackknife: np.ndarray | None) -> float:

@@ -503,8 +503,9 @@ class SlidingWindow:
                 unsure = filled & (weight >= 1.0) & ~localized[np.maximum(tag, 0)]
                 if np.all(np.abs(d - settled)[unsure] <= s.reweight_tolerance * settled[unsure]):
                     break
-            self._select(x)
-            epoch, tag, bearing, std, filled = self._rows()
+            if not known:  # the convex passes moved x: its candidates again (else as chosen above)
+                self._select(x)
+                epoch, tag, bearing, std, filled = self._rows()
             residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
             cost = self._cost(model, x, residual[filled])
             res_p, jb_p = self._angles(self.x, epoch, tag, bearing, std, filled)
