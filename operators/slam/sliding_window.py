@@ -44,6 +44,7 @@ from rover.operators.slam.factors import (
     velocity_terms,
     wheel_rows,
 )
+from rover.operators.slam.gauss_newton import DIRECT_MAX_STATES, DirectStep
 from rover.operators.slam.information import covariances, largest_std_m, window_information
 from rover.operators.slam.integrity import TagIntegrity, disagreeing
 from rover.operators.slam.layout import (
@@ -104,6 +105,8 @@ class SlidingWindow:
     program: Program | None = None
     program_type: Callable[[Shape], Program] = WindowProgram
     """the hand-compiled program (the hot path) or its CVXPY specification (`slam`'s batch mode)"""
+    direct: DirectStep | None = field(default=None, repr=False)
+    """the Gauss-Newton steps' direct solve (the program when it declines, or for large windows)"""
     finals: list[tuple[int, float, float, float]] = field(default_factory=list)
     """(stamp, x, y, yaw) of the epochs that left the window, in order"""
     tag_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
@@ -452,6 +455,7 @@ class SlidingWindow:
         shape = self.shape
         if self.program is None or self.program.shape != shape:
             self.program = self.program_type(shape)
+            self.direct = DirectStep(shape) if shape.states <= DIRECT_MAX_STATES else None
         if self.scale:
             self._linearize_wheels(self.epochs, self.x[shape.epoch_states].reshape(-1, EPOCH_STATES)[:, 2:4])
         p = self._prior
@@ -472,7 +476,7 @@ class SlidingWindow:
         self._select(self.x)
         epoch, tag, bearing, std, filled = self._rows()
         perp = np.stack([-bearing[:, 1], bearing[:, 0]], axis=1)
-        zeros_g = np.zeros((shape.rows, 2 + 2 * shape.tags))
+        steps = dict(base, g=np.zeros((shape.rows, 2 + 2 * shape.tags)), hinge=np.full(shape.rows, GN_HINGE_WEIGHT))
         result = Update()
         x = self.x.copy()
         weight = np.ones(shape.rows)
@@ -508,20 +512,14 @@ class SlidingWindow:
                 epoch, tag, bearing, std, filled = self._rows()
             residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
             cost = self._cost(model, x, residual[filled])
-            res_p, jb_p = self._angles(self.x, epoch, tag, bearing, std, filled)
-            cost_p = self._cost(model, self.x, res_p[filled])
-            if cost_p < cost:
-                x, residual, jb, cost = self.x.copy(), res_p, jb_p, cost_p
+            if not known:  # the Gauss-Newton steps start from the better of the two
+                res_p, jb_p = self._angles(self.x, epoch, tag, bearing, std, filled)
+                cost_p = self._cost(model, self.x, res_p[filled])
+                if cost_p < cost:
+                    x, residual, jb, cost = self.x.copy(), res_p, jb_p, cost_p
             for _ in range(s.refine_iterations):
-                trial, iterations = self.program.solve(
-                    UpdateData(
-                        **base,
-                        a=self._slot_coefficients(jb, tag),
-                        offset=residual,
-                        g=zeros_g,
-                        hinge=np.full(shape.rows, GN_HINGE_WEIGHT),
-                    )
-                )
+                step = UpdateData(**steps, a=self._slot_coefficients(jb, tag), offset=residual)
+                trial, iterations = (self.direct and self.direct.solve(step)) or self.program.solve(step)
                 result.iterations += iterations
                 res_t, jb_t = self._angles(trial, epoch, tag, bearing, std, filled)
                 cost_t = self._cost(model, trial, res_t[filled])
