@@ -352,6 +352,17 @@ def test_the_covariances_are_the_blocks_of_the_informations_inverse():
     np.testing.assert_allclose(newest, inverse[last, last], rtol=1e-10)
 
 
+def test_information_with_a_direction_nothing_holds_gives_infinite_covariances():
+    from rover.operators.slam.information import covariances
+    from rover.operators.slam.layout import Shape
+
+    shape = Shape(epochs=2, slots=1, tags=1)
+    info = np.eye(shape.states)
+    info[shape.tag(0), shape.tag(0)] = 0.0
+    tags, _shared, newest = covariances(info, shape)
+    assert np.isinf(tags).all() and np.isinf(newest).all()
+
+
 def test_a_tags_prior_scaled_down_and_back_is_as_it_was():
     """The window scales a tag's part of the prior with its bearings' weight, either way
     (integrity.TagIntegrity.weight): by 1/k, only the tag's own block and its ties lose information,

@@ -180,27 +180,31 @@ def _decode(
         path[:, k] = s
         if k:
             s = np.where(k <= ends, np.where(kept[rows, k - 1, s], s, leaders[:, k - 1]), s)
-    # forward-backward in scaled probabilities (each step normalized), the same transitions; from a
-    # normalized vector p the chance of each next combination is p_switch + p (p_stay - p_switch)
+    # forward-backward in scaled probabilities, the same transitions: from a vector p the chance of
+    # each next combination is sum(p) p_switch + p (p_stay - p_switch). The backward recursion is
+    # the forward one over a tag's bearings from its last, so both run as one, stacked: the forward
+    # from the start's odds, the backward from its last bearing (its padding past its first is 1)
     like = np.exp(-(padded - padded.min(axis=2, keepdims=True)))
     p_stay, p_switch = np.exp(-stay), np.exp(-switch)
     gain = p_stay - p_switch
-    fwd = np.empty((len(tags), length, combos))
-    a = np.exp(-(start - start.min(axis=1, keepdims=True))) * like[:, 0]
-    fwd[:, 0] = a / a.sum(axis=1, keepdims=True)
+    back = np.ones_like(like)
+    back[which, counts[which] - 1 - pos] = like[which, pos]
+    both, both_switch, both_gain = np.concatenate([like, back]), np.tile(p_switch, (2, 1)), np.tile(gain, (2, 1))
+    chain = np.empty_like(both)
+    a = np.concatenate([np.exp(-(start - start.min(axis=1, keepdims=True))), np.ones_like(start)]) * both[:, 0]
+    chain[:, 0] = a / a.sum(axis=1, keepdims=True)
     for k in range(1, length):
-        a = (p_switch + fwd[:, k - 1] * gain) * like[:, k]
-        fwd[:, k] = a / a.sum(axis=1, keepdims=True)
-    # backward: a tag's last row starts from ones (its padding's like is 1, which keeps it uniform)
-    bwd = np.ones((len(tags), length, combos))
-    for k in range(length - 2, -1, -1):
-        b = bwd[:, k + 1] * like[:, k + 1]
-        b = b.sum(axis=1, keepdims=True) * p_switch + b * gain
-        bwd[:, k] = b / b.sum(axis=1, keepdims=True)
-    post = fwd * bwd
-    post /= post.sum(axis=2, keepdims=True)
+        prev = chain[:, k - 1]
+        a = (prev.sum(axis=1, keepdims=True) * both_switch + prev * both_gain) * both[:, k]
+        chain[:, k] = a / a.sum(axis=1, keepdims=True)
+    # a row's backward message is the transition applied to the next row's (its last row's: ones)
+    after = counts[which] - 2 - pos
+    following = chain[len(tags) + which, np.maximum(after, 0)]
+    message = following.sum(axis=1, keepdims=True) * p_switch[which] + following * gain[which]
+    post = chain[which, pos] * np.where(after[:, None] >= 0, message, 1.0)
+    post /= post.sum(axis=1, keepdims=True)
     state = np.empty(n, dtype=int)
     posterior = np.empty((n, combos))
     state[order] = path[which, pos]
-    posterior[order] = post[which, pos]
+    posterior[order] = post
     return state, posterior

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rover.operators.slam.epoch import Epoch
 from rover.operators.slam.factors import Edge
@@ -50,17 +51,16 @@ def window_information(
 
 def covariances(info: np.ndarray, shape: Shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """From the window's information: each tag's 2x2 covariance (tags, 2, 2), the shared states', and
-    the newest epoch's position's 2x2 (infinite where the information is singular). One solve."""
+    the newest epoch's position's 2x2 (all infinite when the information is not positive definite).
+    One Cholesky solve."""
     nt, nb = shape.tags, shape.biases
     e = shape.tag_states.start
     newest = shape.position(shape.epochs - 1)
     rhs = np.zeros((info.shape[0], 2 * nt + nb + 2))
     rhs[e:, : 2 * nt + nb] = np.eye(2 * nt + nb)
     rhs[newest, 2 * nt + nb :] = np.eye(2)
-    try:
-        solved = np.linalg.solve(info, rhs)
-    except np.linalg.LinAlgError:
-        solved = np.full(rhs.shape, np.inf)
+    factor, failed = dpotrf(info, lower=0, clean=0)
+    solved = dpotrs(factor, rhs, lower=0)[0] if failed == 0 else np.full(rhs.shape, np.inf)
     cov = solved[e:, : 2 * nt + nb]
     tags = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(nt)]).reshape(-1, 2, 2)
     return tags, cov[2 * nt :, 2 * nt :], solved[newest, 2 * nt + nb :]

@@ -533,7 +533,7 @@ class SlidingWindow:
             result.failed = str(exc)
             if not np.all(np.isfinite(x)):
                 x = self.x.copy()
-        residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
+            residual, jb = self._angles(x, epoch, tag, bearing, std, filled)
         result.huber_active = int(np.sum(np.abs(residual[filled]) > s.huber_sigma))
         self.x = x
         self._check_consistency(tag[filled], np.abs(residual[filled]) > s.huber_sigma)
