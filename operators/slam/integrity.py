@@ -167,16 +167,18 @@ def jackknife_spread(
     keep = weight[None, :] * (block[None, :] != np.arange(count)[:, None])  # (B, n)
     q = np.repeat(position[None, :], count, axis=0)
     for _ in range(ITERATIONS):
-        d = q[:, None, :] - robot[None]  # (B, n, 2)
-        range2 = np.maximum(np.sum(d**2, axis=-1), 1e-6)
-        res = wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - angles[None])
-        jac = np.stack([-d[..., 1], d[..., 0]], axis=-1) / range2[..., None]
-        info = np.einsum("bn,bni,bnj->bij", keep, jac, jac)
-        grad = np.einsum("bn,bni,bn->bi", keep, jac, res)
-        try:
-            q = q - np.linalg.solve(info, grad[..., None])[..., 0]
-        except np.linalg.LinAlgError:
+        # each bearing's row is (-dy, dx) / range^2: the 2x2 information and gradient per block,
+        # summed component by component (B x n arrays, no (B, n, 2) stacks)
+        dx, dy = q[:, 0, None] - robot[None, :, 0], q[:, 1, None] - robot[None, :, 1]
+        range2 = np.maximum(dx * dx + dy * dy, 1e-6)
+        res = wrap_angle(np.arctan2(dy, dx) - angles[None])
+        per_info, per_grad = keep / (range2 * range2), keep * res / range2
+        ixx, ixy, iyy = np.sum(per_info * dy * dy, 1), -np.sum(per_info * dx * dy, 1), np.sum(per_info * dx * dx, 1)
+        gx, gy = -np.sum(per_grad * dy, 1), np.sum(per_grad * dx, 1)
+        det = ixx * iyy - ixy * ixy
+        if not np.all(det != 0.0):
             return np.full((2, 2), np.inf), count  # leaving a cell out leaves the tag unconstrained
+        q = q - np.stack([iyy * gx - ixy * gy, ixx * gy - ixy * gx], axis=1) / det[:, None]
     dev = q - q.mean(axis=0)
     return (count - 1) / count * dev.T @ dev, count
 
