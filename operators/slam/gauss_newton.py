@@ -5,10 +5,12 @@ its cheirality rows is an unconstrained, smooth, strongly convex problem in the 
 
 (G_e = [L_e J_e], the odometry rows whitened by their covariance's Cholesky factor C_e), and
 piecewise quadratic: each AoA row is quadratic within M and linear beyond. Newton's method finds
-its minimum: the Hessian of the rows' zones at x, the gradient (the same on both sides of M), a
-step halved until F does not grow (with rows far beyond M the zones can otherwise cycle), until a
-whole step lands in the zones it was taken in: that point is the exact optimum, usually after one
-solve, as the windows rarely reach Huber's linear zone. Clarabel's interior point takes five or
+its minimum: the gradient (the same on both sides of M), the curvature of Huber's majorizer (weight
+M/|r| on the rows beyond M, whose minimum never raises F) until the rows' zones hold from one point
+to the next, then the Hessian of those zones, each step halved until F does not grow (with rows
+far beyond M the zones can otherwise cycle), until a whole Newton step lands in the zones it was
+taken in: that point is the exact optimum, usually after one solve, as the windows rarely reach
+Huber's linear zone. Clarabel's interior point takes five or
 more factorizations of a system three times larger for the same point (within its tolerance). A
 Hessian that is not positive definite, or zones that do not settle within MAX_PASSES, leave the
 step to the program.
@@ -29,6 +31,7 @@ from rover.operators.slam.window_program import UpdateData
 MAX_PASSES = 20
 """Newton steps before the step is left to the program"""
 MAX_HALVINGS = 30
+"""halvings of one step before the step is left to the program"""
 VALUE_REL = 1e-12
 """a step is taken when F grows by no more than this (its rounding at the optimum)"""
 REFINEMENTS = 1
@@ -74,7 +77,6 @@ class DirectStep:
         for passes in range(1, MAX_PASSES + 1):
             beyond = np.abs(r) > d.huber_m
             # Newton once the zones hold from one point to the next; before, the majorizer's curvature
-            # (weight M/|r| on the rows beyond M), whose minimum never raises F
             newton = not beyond.any() or (zones is not None and np.array_equal(beyond, zones))
             weight = np.where(beyond, 0.0 if newton else d.huber_m / np.maximum(np.abs(r), d.huber_m), 1.0)
             weighted = problem.rows * np.sqrt(weight)[:, None]
@@ -100,7 +102,7 @@ class DirectStep:
 
 
 class _Problem:
-    """F, its gradient and the rows beyond M at a point, in square-root form."""
+    """F, its gradient and the AoA rows' residuals at a point, the odometry in square-root form."""
 
     def __init__(self, step: DirectStep, d: UpdateData, smooth: np.ndarray, white: np.ndarray, target: np.ndarray):
         self.d, self.smooth, self.white, self.target = d, smooth, white, target
