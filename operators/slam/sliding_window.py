@@ -14,8 +14,8 @@ attitudes), which makes every constraint linear in the state:
 The cross product is the pseudolinear bearing estimator, biased toward short ranges as the AoA
 noise grows (Dogancay 2004), and reweighting by the current distance feeds that bias. Each update
 therefore ends with Gauss-Newton steps on the true angle residual (atan2) from the convex solution,
-or, once every tag in use is localized, from the last estimate alone (the convex passes are there
-to start tags that are not: one solve an update instead of two, and the same estimates).
+or, once every tag in use is localized or was placed by the search a window ago, from the last
+estimate alone (the convex passes are there to start tags: TagFinder.starting).
 The distances in the weights have a floor (no tag is closer than `min_range_m` to the antennas).
 
 This module holds the epochs and orchestrates an update; its parts (layout, factors, candidates,
@@ -368,6 +368,7 @@ class SlidingWindow:
         p.mean[at] = found.position
         p.grad[at] = 0.0
         self.active[t] = True
+        self.finder.placed[t] = len(self.finals) + len(self.epochs)
         inlier = found.choice >= 0
         self.jumps.start(t, jumps[np.flatnonzero(inlier), found.choice[inlier]])  # the search's evidence
 
@@ -484,9 +485,8 @@ class SlidingWindow:
             d = np.maximum(np.linalg.norm(self._offsets(x, epoch, tag), axis=1), s.min_range_m)
             localized = np.zeros(max(shape.tags, 1), bool)
             localized[: len(self.tag_covariance)] = self.observable()
-            # with every tag in use localized, the last estimate is as good a start for the
-            # Gauss-Newton steps as the convex program's (which is there to start tags it has not)
-            known = not (filled & ~localized[np.maximum(tag, 0)]).any()
+            start = self.finder.starting(localized, len(self.finals) + len(self.epochs), s.window)
+            known = not (filled & start[np.maximum(tag, 0)]).any()  # else the last estimate is as good
             for _ in range(0 if known else s.reweight_passes):
                 scale = np.where(filled, 1.0 / (d * std), 0.0)
                 x, iterations = self.program.solve(
@@ -548,6 +548,7 @@ class SlidingWindow:
         for t in disagreeing(self.disagreement, tags, active, localized, s.reset_updates):
             self.prior = self._prior.relaxed(prior_tag(t), s.reset_factor)
             self.resets += 1
+            self.finder.reexamined(t, len(self.finals) + len(self.epochs))
 
     def _covariances(self, epoch, tag, residual, jb, filled) -> None:
         """The tags' and shared states' covariances from the Gauss-Newton information at the estimate

@@ -52,6 +52,25 @@ class TagFinder:
     """per tag slot: what its latest search found, clear or not (None: too few bearings or no crossing)"""
     searching: Search | None = field(default=None, repr=False)
     """the tag search under way, if any"""
+    placed: dict[int, int] = field(default_factory=dict)
+    """per tag slot the search placed: the epoch count when it did, or when the window last relaxed
+    its prior for disagreeing bearings (re-examined it)"""
+
+    def reexamined(self, tag_slot: int, epochs: int) -> None:
+        """The window relaxed the tag's prior at the epoch count `epochs`: if the search placed it,
+        the convex passes start it again."""
+        if tag_slot in self.placed:
+            self.placed[tag_slot] = epochs
+
+    def starting(self, localized: np.ndarray, epochs: int, window_epochs: int) -> np.ndarray:
+        """Per tag slot, at the epoch count `epochs`: whether the window's convex program is still
+        there to start it. A tag not localized is, unless the search placed (or the window
+        re-examined) it more than `window_epochs` ago: by then the window's last estimate is as good
+        a start for its Gauss-Newton steps (a tag never placed is started until localized)."""
+        start = ~localized
+        for t, at in self.placed.items():
+            start[t] &= epochs - at <= window_epochs
+        return start
 
     def hear(self, tag_slot: int, stamp_ns: int, angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray) -> None:
         """A bearing with several candidates of a tag (world-frame angles, their raw stds, jumps)."""
