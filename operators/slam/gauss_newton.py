@@ -94,9 +94,9 @@ class DirectStep:
             settled = newton and halving == 0 and np.array_equal(np.abs(trial_r) > d.huber_m, beyond)
             x, value, gradient, r, zones = trial, trial_value, trial_gradient, trial_r, beyond
             if settled:
-                for _ in range(REFINEMENTS):
+                for refinement in range(REFINEMENTS):  # the first from the gradient the step already has
+                    gradient = problem.at(x)[1] if refinement else gradient
                     x = x - dpotrs(factor, gradient, lower=0)[0]
-                    gradient = problem.at(x)[1]
                 return x, passes
         return None
 
