@@ -22,16 +22,20 @@ def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument(
         "log",
         metavar="LOG.dat",
-        help="a CSI Tool log (log_to_file output), or an Atheros, Nexmon or PicoScenes capture",
+        help="a CSI Tool log (log_to_file output), an Atheros, Nexmon or PicoScenes capture, or a WiROS bag",
     )
     p.add_argument("--setup", required=True, help="rig file: the receiver's antennas (and channel, calibration)")
     p.add_argument("--calibration", help="a `rover calibrate --out` file: its phase offsets replace the setup's")
     p.add_argument("--channel", type=int, help="the channel the log was recorded on (default: receiver.channel)")
     p.add_argument("--burst", type=burst, default=50, help="packets per burst (default 50, at least 3)")
     p.add_argument(
-        "--format", choices=("atheros", "nexmon", "picoscenes"), help="a capture's format (default: from its contents)"
+        "--format",
+        choices=("atheros", "nexmon", "picoscenes", "wiros"),
+        help="a capture's format (default: from its contents)",
     )
     p.add_argument("--chip", help="a Nexmon capture's chip: 4339, 43455c0, 4358 or 4366c0")
+    p.add_argument("--topic", help="a WiROS bag's rf_msgs/msg/Wifi topic (default: its one, or /csi)")
+    p.add_argument("--compensation", help="WiROS's static calibration: an RX_ID-CHAN.npy file, or a folder of them")
     p.add_argument("--csv", help="also write the rows to this CSV file")
     p.add_argument("--force", action="store_true", help="replace an existing --csv file")
     p.set_defaults(func=run)
@@ -56,11 +60,13 @@ def run(args: argparse.Namespace) -> int:
         except ValueError:
             raise BadInput(f"--channel: {channel} is not a WiFi channel number") from None
     source = Path(args.log)
-    if not source.is_file():
-        raise BadInput(f"{source}: {'is a directory' if source.is_dir() else 'no such file'}")
+    if not source.exists():
+        raise BadInput(f"{source}: no such file or folder")
     fmt = args.format or _capture_format(source)
     if fmt is not None:
         bursts, summary = _capture_bursts(source, fmt, args, rig, channel)
+    elif source.is_dir():
+        raise BadInput(f"{source}: is a folder, and no ROS 2 bag of WiROS's rf_msgs/msg/Wifi")
     else:
         bursts, summary = _log_bursts(source, args, rig, channel)
     _report(bursts, summary, out)
@@ -82,7 +88,7 @@ def _capture_bursts(source: Path, fmt: str, args: argparse.Namespace, rig: Any, 
     from rover.formats.csi_sources import read_capture
     from rover.operators.aoa.capture import capture_bursts, capture_channel
 
-    frames = read_capture(source, fmt, args.chip)
+    frames = read_capture(source, fmt, args.chip, topic=args.topic, compensation=args.compensation)
     for why, n in frames.dropped.items():
         logging.getLogger("rover.aoa").warning("%s: %d %s (left out)", source, n, why)
     try:

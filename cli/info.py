@@ -1,5 +1,5 @@
 """`rover info`: what a dataset holds, like `ros2 bag info`; or what a CSI capture of another tool
-holds (Atheros, Nexmon, PicoScenes)."""
+holds (Atheros, Nexmon, PicoScenes, a WiROS bag)."""
 
 from __future__ import annotations
 
@@ -18,17 +18,20 @@ def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.add_argument(
         "--format",
-        choices=("atheros", "nexmon", "picoscenes"),
+        choices=("atheros", "nexmon", "picoscenes", "wiros"),
         help="a CSI capture's format (default: found from its contents)",
     )
     p.add_argument("--chip", help="a Nexmon capture's chip: 4339, 43455c0, 4358 or 4366c0 (the capture does not say)")
+    p.add_argument("--topic", help="a WiROS bag's rf_msgs/msg/Wifi topic (default: its one, or /csi)")
     p.set_defaults(func=run)
 
 
 def _is_capture(path: Path, fmt: str | None) -> bool:
-    """Whether to read the path as a CSI capture: asked to, or a file neither named nor made as an
-    MCAP dataset."""
-    if fmt is not None:
+    """Whether to read the path as a CSI capture: asked to, a ROS bag of WiROS's CSI, or a file
+    neither named nor made as an MCAP dataset."""
+    from rover.formats.csi_sources import wiros
+
+    if fmt is not None or wiros.holds_wifi(path):
         return True
     if path.suffix == ".mcap":
         return False
@@ -46,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         from rover.datasets.capture_info import capture_info
         from rover.datasets.capture_info import render as render_capture
 
-        capture = capture_info(args.path, args.format, args.chip)
+        capture = capture_info(args.path, args.format, args.chip, args.topic)
         sys.stdout.write(json.dumps(capture.as_json(), indent=2) + "\n" if args.json else render_capture(capture))
         return 0
     from rover.datasets.info import dataset_info, render

@@ -1,4 +1,4 @@
-"""`rover info` of a CSI capture of another tool (Atheros, Nexmon, PicoScenes): what it holds, as
+"""`rover info` of a CSI capture of another tool (Atheros, Nexmon, PicoScenes, WiROS): what it holds, as
 Rover reads it."""
 
 from __future__ import annotations
@@ -38,9 +38,11 @@ def _median(values: np.ndarray) -> float | None:
     return float(np.median(finite)) if len(finite) else None
 
 
-def capture_info(path: str | Path, fmt: str | None = None, chip: str | None = None) -> CaptureInfo:
+def capture_info(
+    path: str | Path, fmt: str | None = None, chip: str | None = None, topic: str | None = None
+) -> CaptureInfo:
     """Summarize a capture (BadInput when it is not one Rover reads, or is truncated)."""
-    frames: CsiFrames = read_capture(path, fmt, chip)
+    frames: CsiFrames = read_capture(path, fmt, chip, topic=topic)
     p, k, n, t = frames.csi.shape
     stamps = frames.timestamp_ns
     macs = np.unique(frames.mac, axis=0) if p else np.zeros((0, 6), np.uint8)

@@ -111,6 +111,13 @@ def _choose_topics(reader: AnyReader, rig: Rig, overrides: dict[str, str]) -> di
         chosen[role] = topic
     if chosen["imu"] is None:
         raise BadInput(f"no IMU topic (sensor_msgs/msg/Imu) found; topics there: {listing}")
+    wifi = [t for t, m in by_topic.items() if m == "rf_msgs/msg/Wifi"]
+    if wifi and (chosen["csi"] in wifi or (chosen["csi"] is None and rig.topics.get("csi", "/csi") is not None)):
+        raise BadInput(
+            f"{chosen['csi'] or wifi[0]} is WiROS's rf_msgs/msg/Wifi, which `rover convert` does not take yet: "
+            "`rover aoa BAG --setup RIG` reads it; for a dataset of the IMU and odometry alone say so in the setup: "
+            "topics: {csi: null}"
+        )
     if chosen["csi"] is None and rig.topics.get("csi", "/csi") is not None:
         raise BadInput(
             f"no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: {listing}. For an IMU/odometry-only "

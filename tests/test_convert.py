@@ -335,15 +335,16 @@ float64[] csi_imag
 string rx_id
 uint32 msg_id
 """
-"""rf_msgs/msg/Wifi as WiROS's public description lists its fields (issue 44): another project's CSI"""
+"""a CSI message of another project's (fields as WiROS's rf_msgs/msg/Wifi, with other types), named OTHER_CSI"""
+OTHER_CSI = "other_msgs/msg/Csi"
 
 
-def wiros_bag(bag: Path, count: int = 50) -> Path:
-    """A ROS 2 bag of `count` WiROS CSI messages on /csi and an IMU on /imu/data."""
+def other_csi_bag(bag: Path, count: int = 50) -> Path:
+    """A ROS 2 bag of `count` OTHER_CSI messages on /csi and an IMU on /imu/data."""
     store = get_typestore(Stores.ROS2_JAZZY)
-    store.register(get_types_from_msg(WIFI_MSG, "rf_msgs/msg/Wifi"))
+    store.register(get_types_from_msg(WIFI_MSG, OTHER_CSI))
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        csi = writer.add_connection("/csi", "rf_msgs/msg/Wifi", typestore=store)
+        csi = writer.add_connection("/csi", OTHER_CSI, typestore=store)
         imu = writer.add_connection("/imu/data", "sensor_msgs/msg/Imu", typestore=typestore)
         for i in range(count * 4):
             stamp = T0_NS + i * 5_000_000
@@ -352,22 +353,22 @@ def wiros_bag(bag: Path, count: int = 50) -> Path:
                 imu, stamp, serialize(make("sensor_msgs/msg/Imu", header=header(stamp, "imu"), linear_acceleration=g))
             )
             if i % 4 == 0:
-                wifi = store.types["rf_msgs/msg/Wifi"]
+                wifi = store.types[OTHER_CSI]
                 values = np.ones(64 * 4 * 4)
                 msg = wifi(
                     header=header(stamp, "wifi"), ap_id="ap", txmac=np.arange(6, dtype=np.uint8), chan=36, n_sub=64,
                     n_rows=4, n_cols=4, bw="20", mcs=0, rssi=-40, fc=0, seq_num=i, csi_real=values, csi_imag=values,
                     rx_id="rx", msg_id=i,
                 )  # fmt: skip
-                writer.write(csi, stamp, store.serialize_cdr(msg, "rf_msgs/msg/Wifi"))
+                writer.write(csi, stamp, store.serialize_cdr(msg, OTHER_CSI))
     return bag
 
 
 def test_a_conversion_that_drops_every_csi_message_fails_and_writes_nothing(tmp_path):
-    """A bag whose CSI topic holds another project's type (WiROS's rf_msgs/msg/Wifi): every CSI
-    message is dropped, so the conversion fails naming the topic, its type and the count, exit 2,
-    and nothing is written (not a dataset without CSI); an old output stays as it was."""
-    bag = wiros_bag(tmp_path / "bag")
+    """A bag whose CSI topic holds another project's type: every CSI message is dropped, so the
+    conversion fails naming the topic, its type and the count, exit 2, and nothing is written (not a
+    dataset without CSI); an old output stays as it was."""
+    bag = other_csi_bag(tmp_path / "bag")
     setup = tmp_path / "setup.yaml"
     setup.write_text(SETUP + "topics: {csi: /csi, imu: /imu/data, odom: null}\n")
     out = tmp_path / "out.mcap"
@@ -375,7 +376,7 @@ def test_a_conversion_that_drops_every_csi_message_fails_and_writes_nothing(tmp_
     result = run_rover("convert", str(bag), "-o", str(out), "--setup", str(setup), "--force")
     assert result.returncode == 2, result.stderr
     assert result.stderr.splitlines() == [
-        f"rover: error: {bag}: topic /csi (rf_msgs/msg/Wifi): every CSI message was dropped (50 undecodable); "
+        f"rover: error: {bag}: topic /csi ({OTHER_CSI}): every CSI message was dropped (50 undecodable); "
         "Rover reads rover_msgs/msg/CsiFrame (the CSI Tool's records): nothing written"
     ]
     assert out.read_bytes() == b"before"

@@ -165,7 +165,8 @@ def test_unknown_and_mislabelled_captures_are_refused_naming_what_was_tried(tmp_
     assert result.returncode == 2 and len(result.stderr.splitlines()) == 1
     assert result.stderr == (
         f"rover: error: {junk}: neither an MCAP dataset nor a CSI capture Rover reads (tried: Atheros CSI Tool "
-        "log, Nexmon pcap, PicoScenes .csi; the Intel 5300's CSI Tool logs go to `rover aoa` and `rover calibrate`)\n"
+        "log, Nexmon pcap, PicoScenes .csi, a ROS bag of WiROS's rf_msgs/msg/Wifi; the Intel 5300's CSI Tool logs "
+        "go to `rover aoa` and `rover calibrate`)\n"
     )
     intel = reference_data() / "csi" / "sample_0x1_ap.dat"
     assert "go to `rover aoa`" in run_rover("info", str(intel)).stderr

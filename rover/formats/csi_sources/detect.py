@@ -7,17 +7,20 @@ from pathlib import Path
 import numpy as np
 
 from rover.errors import BadInput
-from rover.formats.csi_sources import atheros, nexmon, picoscenes
+from rover.formats.csi_sources import atheros, nexmon, picoscenes, wiros
 from rover.formats.csi_sources.frames import CsiFrames
 
-FORMATS = ("atheros", "nexmon", "picoscenes")
+FORMATS = ("atheros", "nexmon", "picoscenes", "wiros")
 HEAD_BYTES = 256
 """bytes read to tell the format (a pcap's first Nexmon frame header is within 84)"""
 LOOKS = {"atheros": atheros.looks_like, "nexmon": nexmon.looks_like, "picoscenes": picoscenes.looks_like}
 
 
 def detect_format(path: Path) -> str:
-    """The format of the file, from its contents; BadInput naming what was tried when none fits."""
+    """The format of the file (or ROS 2 bag folder), from its contents; BadInput naming what was
+    tried when none fits."""
+    if wiros.holds_wifi(path):
+        return "wiros"
     try:
         with path.open("rb") as f:
             head = f.read(HEAD_BYTES)
@@ -27,14 +30,22 @@ def detect_format(path: Path) -> str:
     if not found:
         raise BadInput(
             f"{path}: neither an MCAP dataset nor a CSI capture Rover reads (tried: Atheros CSI Tool log, "
-            "Nexmon pcap, PicoScenes .csi; the Intel 5300's CSI Tool logs go to `rover aoa` and `rover calibrate`)"
+            f"Nexmon pcap, PicoScenes .csi, a ROS bag of WiROS's {wiros.WIFI_TYPE}; the Intel 5300's CSI Tool logs "
+            "go to `rover aoa` and `rover calibrate`)"
         )
     return found[0]
 
 
-def read_capture(path: str | Path, fmt: str | None = None, chip: str | None = None) -> CsiFrames:
+def read_capture(
+    path: str | Path,
+    fmt: str | None = None,
+    chip: str | None = None,
+    *,
+    topic: str | None = None,
+    compensation: str | Path | None = None,
+) -> CsiFrames:
     """The capture's CSI: its format from its contents unless `fmt` says (a Nexmon capture needs
-    its `chip`)."""
+    its `chip`; a WiROS bag may name its `topic` and `compensation`)."""
     path = Path(path)
     if fmt is not None and fmt not in FORMATS:
         raise BadInput(f"--format {fmt}: not one of {', '.join(FORMATS)}")
@@ -42,6 +53,8 @@ def read_capture(path: str | Path, fmt: str | None = None, chip: str | None = No
     try:
         if fmt == "nexmon":
             frames = nexmon.read(path, chip or "")
+        elif fmt == "wiros":
+            frames = wiros.read(path, topic, compensation)
         else:
             frames = atheros.read(path) if fmt == "atheros" else picoscenes.read(path)
     except OSError as exc:
