@@ -94,6 +94,9 @@ def _setup_yaml(scenario: Scenario, antennas: np.ndarray, offsets: np.ndarray) -
         "imu": {"frame_id": "imu_link", "rate_hz": scenario.imu.rate_hz},
         "sweep": {"dwell_s": scenario.receiver.dwell_s},
     }
+    if np.linalg.matrix_rank(antennas - antennas[0], tol=1e-9) < 2:  # collinear, tags all around it: each
+        # angle and its mirror image across the array's axis are candidates (the SLAM tells them apart)
+        data["receiver"]["field_of_view_deg"] = [-180.0, 180.0]
     return "# Rig description written by rover simulate (calibration includes its simulated error)\n" + yaml.safe_dump(
         data, sort_keys=False
     )
@@ -193,6 +196,11 @@ def simulate(
     duration = motion.duration_s
     world = _World(scenario.trajectory.start_m, math.radians(scenario.trajectory.heading_deg))
     antennas = antenna_positions(scenario)
+    if len(antennas) not in (2, 3):
+        raise BadInput(
+            f"receiver: {len(antennas)} antennas: the Intel 5300 has three receive chains, so 2 or 3 antennas "
+            "(records of 2 or 3 chains)"
+        )
     if len(rx.phase_offsets_rad) != len(antennas):
         raise BadInput(
             f"receiver.phase_offsets_rad has {len(rx.phase_offsets_rad)} values for {len(antennas)} antennas"
@@ -283,8 +291,6 @@ def simulate(
             int(selection[k]),
             RATE_N_FLAGS,
         )
-        if len(antennas) != 3:
-            raise BadInput("the Intel 5300 has three receive chains: the simulated array needs 3 antennas")
         bfee = encode_record(head, quantized[k][:, :, None])
         stamp = int(stamps[k])
         add(

@@ -459,3 +459,42 @@ def test_the_aoa_says_it_holds_the_burst_under_way_and_stamps_no_aoa_before_it()
     sent += list(op.on_end())
     assert op.held_since_ns() == math.inf
     assert len(sent) == 3 and all(e.stamp_ns >= b * 1_000_000_000 for e, b in zip(sent, (1, 2, 3), strict=True))
+
+
+PAIR = np.array([[0.0, 0.0], [D, 0.0]])
+"""two antennas half a wavelength apart (a 2-antenna card), their axis along x"""
+
+
+def pair_setup(field: str) -> str:
+    return (
+        f"receiver: {{antenna_positions_m: {PAIR.tolist()}, phase_offsets_rad: {OFFSETS[:2].tolist()}{field}}}\n"
+        "excitation: {channel: 165}\ntags: [{id: 1, channel: 149}]\n"
+    )
+
+
+def test_a_pair_of_antennas_gives_each_angle_and_its_mirror_image_as_candidates():
+    """Two antennas see a direction and its mirror image across their axis alike. With the field all
+    around, both are candidates of the same jump combination, and the mirror is no rival that widens
+    the angle's std (the std the half plane in front gives, where the mirror is out of the field);
+    with that default half plane, only the one in it."""
+    for deg in (30, 75, 120, -60, -150):
+        csi = synthetic([(math.radians(deg), 20e-9, 1.0)], antennas=PAIR, snr_db=35, seed=deg + 700)
+        (aoa,) = estimate(csi, AoaParams(jumps=False), setup=pair_setup(", field_of_view_deg: [-180, 180]"))
+        found = np.degrees(np.asarray(aoa.candidate_angles_rad))
+        assert sorted(np.round(found).tolist()) == sorted([round(deg), round(-deg)]), (deg, found)
+        assert list(aoa.candidate_jumps) == [0, 0]
+        (front,) = estimate(csi, AoaParams(jumps=False), setup=pair_setup(""))
+        assert len(front.candidate_angles_rad) == 1 and front.angle_rad > 0  # the half plane y > 0
+        assert angle_error_deg(front.angle_rad, math.radians(abs(deg))) < 2.0
+        np.testing.assert_allclose(aoa.candidate_stds_rad, front.std_rad, rtol=1e-9)
+
+
+def test_a_pairs_mirror_images_come_with_every_jump_combination():
+    """At 5 GHz the second chain may be off by pi: two combinations, each with its mirror image."""
+    csi = synthetic([(math.radians(40), 20e-9, 1.0)], antennas=PAIR, snr_db=35, seed=9)
+    (aoa,) = estimate(csi, setup=pair_setup(", field_of_view_deg: [-180, 180]"))
+    assert sorted(aoa.candidate_jumps) == [0, 0, 1, 1]
+    angles = np.degrees(np.asarray(aoa.candidate_angles_rad))
+    for combination in (0, 1):
+        pair = angles[np.asarray(aoa.candidate_jumps) == combination]
+        assert abs(pair[0] + pair[1]) < 1e-6  # mirror images across the x axis

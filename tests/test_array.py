@@ -14,6 +14,7 @@ from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz
 from rover.messages import make
 from rover.operators.aoa.array import (
     AMBIGUOUS_CORRELATION,
+    ArrayResponse,
     alias_angles,
     check_geometry,
     check_rig_geometry,
@@ -137,3 +138,14 @@ def test_the_operator_and_the_check_give_one_verdict(antennas):
             list(Aoa().on_input("setup", setup, 0))
     else:
         assert list(Aoa().on_input("setup", setup, 0)) == []
+
+
+def test_a_collinear_arrays_mirror_image_is_in_its_main_lobe():
+    """A collinear array cannot tell a direction from its mirror image: the mirror's lobe is no
+    sidelobe (the operator makes it a candidate, not a rival); a planar array's back lobe stays one."""
+    lgtm = ArrayResponse(LGTM, F64_HZ)
+    axis_deg = 270  # LGTM's array lies along -y
+    for deg in (10, 45, 100, 200):
+        assert lgtm.sidelobe[deg, (2 * axis_deg - deg) % 360] == 0.0
+    triangle = ArrayResponse(TRIANGLE, 5.825e9)
+    assert triangle.sidelobe.max() > 0.8

@@ -85,3 +85,26 @@ def test_bearings_of_tags_not_in_use_keep_their_choice():
     kept = Choice(np.zeros(4, dtype=int), np.full(4, 0.5))
     got = choose(offset, tag, angles, stds, jumps, [False], JumpMemory(), 4.0, kept)
     assert np.array_equal(got.choice, kept.choice) and np.array_equal(got.doubt, kept.doubt)
+
+
+def test_a_mirror_image_of_the_same_combination_is_chosen_only_where_it_points_at_the_tag():
+    """A collinear array's bursts: each combination has two candidates, a direction and its mirror
+    image. The one nearer the estimate's bearing is used whichever comes first, and the
+    combinations' sequence is decoded as with one candidate each (a step is still followed); a
+    mirror image as likely as the chosen candidate (a bearing near the array's axis) adds doubt."""
+    carried = [1] * 6 + [0] * 6
+    offset, tag, angles, stds, jumps = bearings(carried)
+    mirrored = np.concatenate([-angles - 1.0, angles], axis=1)  # each combination's mirror image first
+    mirrored[::2, :2] = mirrored[::2, 2:] + 1.2  # elsewhere for every other bearing
+    paired = np.tile(jumps, 2)
+    kept = Choice(np.zeros(len(tag), dtype=int), np.zeros(len(tag)))
+    got = choose(offset, tag, mirrored, np.tile(stds, 2), paired, [True], held(1), 4.0, kept)
+    assert [int(paired[i, k]) for i, k in enumerate(got.choice)] == carried
+    assert np.all(got.choice >= 2), "the candidate pointing at the tag, not its mirror image listed first"
+    single = choose(offset, tag, angles, stds, jumps, [True], held(1), 4.0, kept)
+    near = np.concatenate([angles, angles + math.radians(5.0)], axis=1)
+    doubtful = choose(offset, tag, near, np.tile(stds, 2), paired, [True], held(1), 4.0, kept)
+    assert [int(paired[i, k]) for i, k in enumerate(doubtful.choice)] == carried
+    assert np.all(doubtful.doubt > single.doubt + math.radians(2.0) ** 2)
+    away = np.delete(doubtful.doubt, [5, 6])  # the bearings around the step doubt their combination too
+    assert np.all(away < math.radians(5.0) ** 2 / 2), "the chosen one stays the likelier"

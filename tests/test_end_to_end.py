@@ -306,3 +306,30 @@ def test_sample_recording_convert_run_eval(tmp_path):
     assert sorted(last) == [1, 2, 3] and sum(observable for observable, _ in last.values()) >= 2, last
     assert all(error < 0.5 for observable, error in last.values() if observable), last
     assert metrics["robot"]["trajectory.tum"]["unaligned"]["mean_m"] < 0.393
+
+
+PAIR_ALONG = (
+    "receiver.array=positions",
+    "receiver.antenna_positions_m=[[0, 0], [0.0258, 0]]",
+    "receiver.phase_offsets_rad=[0, 0.9]",
+)
+"""a 2-antenna card, its axis along the robot's heading (the chains off by pi all run, as `paper` has them)"""
+
+
+def test_a_two_antenna_card_localizes_every_los_tag_from_its_angles_and_their_mirror_images(simulated, tmp_path):
+    """One lap of `paper` with two antennas: each burst's angle and its mirror image are candidates
+    (with each jump combination's), the robot's turns tell them apart, every LOS tag is localized,
+    and no published estimate is beyond 3 sigma (the figures against three antennas:
+    bench/bench_antennas.py)."""
+    out = tmp_path / "pair"
+    result = run_rover(
+        "run", "--dataset", str(simulated("paper", 1, "trajectory.laps=1", *PAIR_ALONG)), "--output", str(out)
+    )
+    assert result.returncode == 0, result.stderr
+    aoa = [deserialize(d, "rover_msgs/msg/Aoa") for t, _s, d in read_bag(out / "results.mcap") if t == "/rover/aoa"]
+    assert np.median([len(a.candidate_angles_rad) for a in aoa]) == 4
+    metrics = json.loads((out / "metrics.json").read_text())
+    los = [tag for tag in metrics["tags"].values() if not tag["nlos"]]
+    assert all(tag["localized"] for tag in los), metrics["tags"]
+    assert metrics["published"]["los"]["beyond_3_sigma"] == 0.0 and metrics["published"]["los"]["estimates"] > 0
+    assert metrics["published"]["nlos"]["estimates"] == 0 or metrics["published"]["nlos"]["beyond_3_sigma"] == 0.0

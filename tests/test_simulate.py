@@ -413,3 +413,30 @@ def test_a_set_of_no_section_or_key_of_the_scenario_names_the_set_with_a_did_you
     result = run_rover("simulate", "-o", str(out), "--set", setting)
     assert result.returncode == 2 and result.stderr.splitlines() == [f"rover: error: {message}"]
     assert not out.exists()
+
+
+PAIR = {
+    "receiver.array": "positions",
+    "receiver.antenna_positions_m": "[[0, 0], [0.0258, 0]]",
+    "receiver.phase_offsets_rad": "[0, 0.9]",
+}
+"""a 2-antenna card, its axis along the robot's heading"""
+
+
+def test_a_pair_of_antennas_records_two_chains_and_looks_all_around(tmp_path):
+    """The Intel 5300 with two antennas: records of two chains, and a rig description whose field
+    of view is all around (a collinear array's mirror images are then candidates); four are refused."""
+    path = tmp_path / "pair.mcap"
+    simulate(load_scenario("paper", {**TINY, **PAIR, "receiver.jumps_per_run": "false"}), 1, path)
+    messages = read_bag(path)
+    frames = [deserialize(d, "rover_msgs/msg/CsiFrame") for t, _s, d in messages if t == "/csi"]
+    records = decode_bfee([bytes(f.bfee) for f in frames[:200]], scaled=False)
+    assert set(records.nrx.tolist()) == {2} and records.csi.shape[2] == 2
+    rig = yaml.safe_load(read_metadata(path)["rover.setup"]["yaml"])
+    assert rig["receiver"]["field_of_view_deg"] == [-180.0, 180.0]
+    assert rig["receiver"]["antenna_positions_m"] == [[0.0, 0.0], [0.0258, 0.0]]
+    four = {**PAIR, "receiver.antenna_positions_m": "[[0, 0], [0.02, 0], [0, 0.02], [0.02, 0.02]]"}
+    four["receiver.phase_offsets_rad"] = "[0, 0, 0, 0]"
+    with pytest.raises(BadInput, match="4 antennas: the Intel 5300 has three receive chains, so 2 or 3"):
+        simulate(load_scenario("paper", {**TINY, **four}), 1, tmp_path / "four.mcap")
+    assert not (tmp_path / "four.mcap").exists()

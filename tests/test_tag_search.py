@@ -15,6 +15,7 @@ import numpy as np
 from slam_scenes import scene
 from test_jumps import angle_gap_deg, burst_candidates
 
+from rover.geometry import wrap_angle
 from rover.operators.slam import tag_search
 from rover.operators.slam.search_scores import FREE, Bearings, model_costs, model_rates
 from rover.operators.slam.tag_search import SearchSettings, by_combination, search
@@ -252,3 +253,42 @@ def test_a_tag_heard_long_is_scored_on_a_bounded_share_of_its_bearings(monkeypat
     assert len(found.choice) == len(robot) and found.inliers >= s.min_inliers
     assert np.linalg.norm(found.position - TAG) < 0.2
     assert np.all(used(found, b) == 2)
+
+
+def mirrored(robot: np.ndarray, yaw: np.ndarray, seed: int = 0) -> Bearings:
+    """A 2-antenna card's bearings of TAG (half a wavelength apart, the axis along the robot's
+    heading), its second chain off by pi all run: each burst two combinations' candidates, each an
+    angle and its mirror image across the heading, in a random order. Undoing the pi (combination 1)
+    gives the noisy truth; combination 0 the direction whose cosine to the axis is one off."""
+    rng = np.random.default_rng(seed)
+    d = TAG[None, :] - robot
+    local = np.arctan2(d[:, 1], d[:, 0]) - yaw + rng.normal(0.0, STD, len(robot))
+    ghost = np.arccos(np.clip(np.cos(local) - np.sign(np.cos(local)), -1.0, 1.0))
+    angles = yaw[:, None] + np.stack([local, -local, ghost, -ghost], axis=1)
+    jumps = np.tile([1, 1, 0, 0], (len(robot), 1))
+    order = np.argsort(rng.uniform(size=angles.shape), axis=1)
+    angles, jumps = np.take_along_axis(angles, order, axis=1), np.take_along_axis(jumps, order, axis=1)
+    return Bearings(np.arange(len(robot)) * BEARING_GAP_S, robot, angles, np.full(angles.shape, STD), jumps)
+
+
+def test_a_pairs_mirror_image_is_told_apart_by_the_turn():
+    """Driving straight, the mirror image of a tag across the path fits the bearings as well as the
+    tag: nothing is settled; the quarter turn after it tells them apart, and the tag is found with
+    each bearing's candidate that points at it, the chains' combination held all along (each
+    combination scored by the better of its two candidates, not each bearing's best of four)."""
+    robot, yaw = straight_then_turn()
+    s = SearchSettings()
+    straight = np.flatnonzero(yaw == 0.0)
+    d = TAG[None, :] - robot
+    true = np.arctan2(d[:, 1], d[:, 0])
+    for seed in range(3):
+        b = mirrored(robot, yaw, seed)
+        before = search(b.take(straight), s)
+        assert before is not None and not before.clear(s), seed
+        found = search(b, s)
+        assert found is not None and found.clear(s), seed
+        assert found.combination == 1 and found.redraw_rate != FREE, seed
+        assert np.linalg.norm(found.position - TAG) < 0.2, (seed, found.position)
+        used = b.angles[np.arange(len(b)), found.choice]
+        inlier = found.choice >= 0
+        assert np.all(np.abs(wrap_angle(used[inlier] - true[inlier])) < 4 * STD), seed

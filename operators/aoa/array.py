@@ -159,7 +159,10 @@ def _collinear_warning(
     mirror = 2 * axis_deg - inside
     distinct = np.abs((mirror - inside + 180.0) % 360.0 - 180.0) > 1.0
     if (mask[np.rint(mirror).astype(int) % 360] & distinct).any():
-        warning += ", which reaches across the axis: a direction in it may be reported as its mirror image"
+        warning += (
+            ", which reaches across the axis: a direction in it and its mirror image are both candidates (the SLAM "
+            "tells them apart by the robot's motion)"
+        )
     shifts = _alias_shifts(antennas_m, axis, max_freq_hz)
     off_axis = math.cos(math.radians(AMBIGUITY_SEPARATION_DEG))
     shifts = shifts[shifts < 1 + off_axis]
@@ -224,7 +227,8 @@ def check_geometry(
 class ArrayResponse:
     """The array at one frequency, per whole degree: its steering vectors, and how alike it sees a
     direction j outside direction i's main lobe, sidelobe[i, j] (0 inside it; the main lobe ends
-    at the first minimum on each side)."""
+    at the first minimum on each side; a collinear array's takes in the lobe of i's mirror image
+    across its axis, which it cannot tell from i: the operator gives the mirror as a candidate)."""
 
     def __init__(self, antennas_m: np.ndarray, freq_hz: float):
         self.steering = steering(antennas_m, freq_hz, np.radians(np.arange(360.0)))  # (360, M)
@@ -243,6 +247,10 @@ class ArrayResponse:
         d = np.arange(360)[None, :]
         outside = np.zeros((360, 360), dtype=bool)
         outside[rows, index] = ((d <= 180) & (d > ccw[:, None])) | ((d > 180) & (360 - d > cw[:, None]))
+        axis = array_axis(antennas_m)
+        if axis is not None:  # a collinear array sees a direction's mirror image as the direction itself
+            mirror = np.rint(2 * math.degrees(math.atan2(axis[1], axis[0])) - np.arange(360)).astype(int) % 360
+            outside &= outside[mirror]
         self.sidelobe = np.where(outside, corr, 0.0)
 
     @staticmethod

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -308,7 +308,19 @@ class Aoa(Operator):
             candidate = self._direction(peaks, int(c), int(paths[c]), energies[c], response)
             if candidate is not None and self.field[ArrayResponse.degree(candidate.angle_rad)]:
                 found.append(candidate)  # a direction outside the rig's field of view is no candidate
-        return distinguishable(found, math.radians(p.merge_deg))
+        return distinguishable(found + self._mirrors(found), math.radians(p.merge_deg))
+
+    def _mirrors(self, found: list[Candidate]) -> list[Candidate]:
+        """For a collinear array (two antennas, a line), which sees a direction and its mirror image
+        across its axis alike: each candidate's mirror image that is in the rig's field of view too,
+        a candidate of the same jump combination (the SLAM tells the two apart by the robot's motion,
+        as it does the combinations). None for a planar array, or a field on one side of the axis."""
+        axis = array_axis(self._rig.antenna_positions_m)
+        if axis is None:
+            return []
+        twice_axis = 2 * math.atan2(axis[1], axis[0])
+        mirrors = [replace(c, angle_rad=float(wrap_angle(twice_axis - c.angle_rad))) for c in found]
+        return [m for m in mirrors if self.field[ArrayResponse.degree(m.angle_rad)]]
 
     def _direction(
         self, peaks: Peaks, c: int, paths: int, energy: np.ndarray, response: ArrayResponse

@@ -129,10 +129,16 @@ def choose(
     np.minimum.at(per_combo, (at_row, cand_jumps[at_row, at_k]), cost[at_row, at_k])
     per_combo = np.where(np.isfinite(per_combo), per_combo, outlier)
     state, posterior = _decode(per_combo, slots, lasts, memory)
-    # the candidate of the decoded combination (or the row's best, when it has none)
+    # the best candidate of the decoded combination (or the row's best, when it has none); a
+    # combination's chance shared among its candidates (a direction and its mirror image) by their
+    # likelihoods
     match = has & (cand_jumps == state[:, None])
-    pick = np.where(match.any(axis=1), match.argmax(axis=1), np.argmin(cost, axis=1))
-    chance = np.where(has, posterior[np.arange(len(rows))[:, None], np.maximum(cand_jumps, 0)], 0.0)
+    pick = np.argmin(np.where(match.any(axis=1)[:, None] & ~match, np.inf, cost), axis=1)
+    row_index, combo_of = np.arange(len(rows))[:, None], np.maximum(cand_jumps, 0)
+    share = np.where(has, np.exp(-(cost - per_combo[row_index, combo_of])), 0.0)
+    within = np.zeros_like(per_combo)
+    np.add.at(within, (at_row, cand_jumps[at_row, at_k]), share[at_row, at_k])
+    chance = np.where(has, posterior[row_index, combo_of] * share / np.maximum(within[row_index, combo_of], 1e-300), 0)
     chance /= np.maximum(chance.sum(axis=1, keepdims=True), np.finfo(float).tiny)
     mine = angles[rows, pick]
     apart = np.where(has, wrap_angle(angles[rows] - mine[:, None]), 0.0)

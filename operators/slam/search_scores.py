@@ -12,7 +12,8 @@ between two bearings may well have seen a step). The rate is not known before th
 the cost is the least over REDRAWS_PER_S and FREE, the model in which each bearing draws its
 combination afresh (a jump at every retune: each bearing takes its best candidate, each transition costs
 log C). A bearing without a candidate of its own for a
-combination (merged into another of the same direction) takes its best. A step within the history
+combination (merged into another of the same direction) takes its best; one with two (a collinear
+array's direction and its mirror image) the better of them. A step within the history
 then costs a few units where one combination held throughout fails, and a wrong place cannot take
 every bearing's best candidate for free.
 """
@@ -66,11 +67,18 @@ def model_rates(combos: int) -> np.ndarray:
 
 
 def _candidate_index(jumps: np.ndarray, combos: int) -> np.ndarray:
-    """(n, C) each bearing's candidate of each combination, -1 where it has none."""
-    index = np.full((len(jumps), combos), -1)
+    """(n, C, M) each bearing's candidates of each combination, -1 where it has fewer: one, or a
+    direction and its mirror image for a collinear array (rover.operators.aoa)."""
     row, k = np.nonzero(jumps >= 0)
-    index[row, jumps[row, k]] = k
-    return index
+    combo = jumps[row, k]
+    slot = row * combos + combo
+    order = np.argsort(slot, kind="stable")
+    slot, k = slot[order], k[order]
+    first = np.searchsorted(slot, slot)
+    rank = np.arange(len(slot)) - first
+    index = np.full((len(jumps) * combos, max(int(rank.max(initial=0)) + 1, 1)), -1)
+    index[slot, rank] = k
+    return index.reshape(len(jumps), combos, -1)
 
 
 def _candidate_costs(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float) -> np.ndarray:
@@ -86,10 +94,13 @@ def _candidate_costs(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds:
 
 
 def _per_combination(r: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """(n, C, H) each combination's cost from the candidates' (n, K, H): its candidate's, or the
-    bearing's best where it has none of its own."""
-    per = np.take_along_axis(r, np.maximum(index, 0)[:, :, None], axis=1)
-    return np.where((index >= 0)[:, :, None], per, r.min(axis=1, keepdims=True))
+    """(n, C, H) each combination's cost from the candidates' (n, K, H): its best candidate's (index
+    (n, C, M) as `_candidate_index`), or the bearing's best where it has none of its own."""
+    per = np.take_along_axis(r, np.maximum(index[:, :, 0], 0)[:, :, None], axis=1)
+    for m in range(1, index.shape[2]):  # a mirror image: the better of the two
+        other = np.take_along_axis(r, np.maximum(index[:, :, m], 0)[:, :, None], axis=1)
+        per = np.where((index[:, :, m] >= 0)[:, :, None], np.minimum(per, other), per)
+    return np.where((index[:, :, 0] >= 0)[:, :, None], per, r.min(axis=1, keepdims=True))
 
 
 MIN_REDRAW_CHANCE = 1e-9

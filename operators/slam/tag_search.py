@@ -185,18 +185,19 @@ def _refine(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarr
 
 
 def by_combination(angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray, combination: int | np.ndarray):
-    """Each bearing's candidate for a jump combination (one for all, or one per bearing; -1: none)
-    as a one-candidate set (n, 1); a bearing without a candidate of its own for it (merged into
+    """Each bearing's candidates for a jump combination (one for all, or one per bearing; -1: none)
+    as a candidate set (n, K; NaN-padded): its own of that combination (one, or a direction and its
+    mirror image for a collinear array); a bearing without one of its own for it (merged into
     another's, or -1) keeps all its candidates (it fits either way). Also (n, K) the index of each
     kept candidate among the bearing's own."""
     has = (jumps == np.broadcast_to(np.asarray(combination), len(angles))[:, None]) & (jumps >= 0)
     own = has.any(axis=1)
-    index = np.argmax(has, axis=1)
-    rows = np.arange(len(angles))
-    pick_a = np.where(own[:, None], np.nan, angles)
-    pick_s = np.where(own[:, None], 1.0, stds)
-    pick_a[own, 0], pick_s[own, 0] = angles[rows[own], index[own]], stds[rows[own], index[own]]
-    source = np.where(own[:, None], index[:, None], np.arange(angles.shape[1])[None, :])
+    keep = np.where(own[:, None], has, True)
+    # the kept candidates first, in their order, then the others as padding
+    source = np.argsort(~keep, axis=1, kind="stable")
+    kept = np.take_along_axis(keep, source, axis=1)
+    pick_a = np.where(kept, np.take_along_axis(angles, source, axis=1), np.nan)
+    pick_s = np.where(kept, np.take_along_axis(stds, source, axis=1), 1.0)
     return pick_a, pick_s, source
 
 
