@@ -82,21 +82,21 @@ def _windows(scenario: Scenario, duration_s: float) -> tuple[np.ndarray, np.ndar
 
 
 def _setup_yaml(scenario: Scenario, antennas: np.ndarray, offsets: np.ndarray) -> str:
+    receiver: dict[str, Any] = {
+        "antenna_positions_m": [[round(float(v), 10) for v in p] for p in antennas],
+        "phase_offsets_rad": [round(float(v), 6) for v in offsets],
+        "interface": "wlan0",
+    }
+    if np.linalg.matrix_rank(antennas - antennas[0], tol=1e-9) < 2:  # collinear, tags all around it: each
+        receiver["field_of_view_deg"] = [-180.0, 180.0]  # angle and its mirror image are candidates
     data = {
-        "receiver": {
-            "antenna_positions_m": [[round(float(v), 10) for v in p] for p in antennas],
-            "phase_offsets_rad": [round(float(v), 6) for v in offsets],
-            "interface": "wlan0",
-        },
+        "receiver": receiver,
         "excitation": {"channel": scenario.access_point.channel},
         "tags": [{"id": t.id, "channel": t.channel} for t in scenario.tags],
         "topics": {"csi": "/csi", "imu": "/imu/data", "odom": "/odom" if scenario.odometry.enabled else None},
         "imu": {"frame_id": "imu_link", "rate_hz": scenario.imu.rate_hz},
         "sweep": {"dwell_s": scenario.receiver.dwell_s},
     }
-    if np.linalg.matrix_rank(antennas - antennas[0], tol=1e-9) < 2:  # collinear, tags all around it: each
-        # angle and its mirror image across the array's axis are candidates (the SLAM tells them apart)
-        data["receiver"]["field_of_view_deg"] = [-180.0, 180.0]
     return "# Rig description written by rover simulate (calibration includes its simulated error)\n" + yaml.safe_dump(
         data, sort_keys=False
     )
