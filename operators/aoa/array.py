@@ -161,7 +161,8 @@ def _collinear_warning(
     if (mask[np.rint(mirror).astype(int) % 360] & distinct).any():
         warning += (
             ", which reaches across the axis: a direction in it and its mirror image are both candidates (the SLAM "
-            "tells them apart by the robot's motion)"
+            "tells them apart by the robot's motion; an NLOS tag's estimate may then be off beyond its covariance: "
+            "docs/rig.md#linear-arrays)"
         )
     shifts = _alias_shifts(antennas_m, axis, max_freq_hz)
     off_axis = math.cos(math.radians(AMBIGUITY_SEPARATION_DEG))

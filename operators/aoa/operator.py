@@ -161,6 +161,8 @@ class Aoa(Operator):
         self.waiting: list[tuple[Any, int]] = []
         self.burst: list[tuple[Any, int]] = []
         self.collinear = False
+        self.axis_rad: float | None = None
+        """a collinear array's axis direction (robot frame)"""
         self._responses: dict[float, ArrayResponse] = {}
         self.field = np.ones(360, dtype=bool)
 
@@ -180,7 +182,9 @@ class Aoa(Operator):
         antennas = self.rig.antenna_positions_m
         warning = check_rig_geometry(self.rig)
         self.estimators, self._responses = {}, {}
-        self.collinear = array_axis(antennas) is not None
+        axis = array_axis(antennas)
+        self.collinear = axis is not None
+        self.axis_rad = math.atan2(axis[1], axis[0]) if axis is not None else None
         self.field = field_mask(antennas, self.rig.field_of_view_deg)
         if warning:
             log.warning("%s", warning)
@@ -315,11 +319,9 @@ class Aoa(Operator):
         across its axis alike: each candidate's mirror image that is in the rig's field of view too,
         a candidate of the same jump combination (the SLAM tells the two apart by the robot's motion,
         as it does the combinations). None for a planar array, or a field on one side of the axis."""
-        axis = array_axis(self._rig.antenna_positions_m)
-        if axis is None:
+        if self.axis_rad is None:
             return []
-        twice_axis = 2 * math.atan2(axis[1], axis[0])
-        mirrors = [replace(c, angle_rad=float(wrap_angle(twice_axis - c.angle_rad))) for c in found]
+        mirrors = [replace(c, angle_rad=float(wrap_angle(2 * self.axis_rad - c.angle_rad))) for c in found]
         return [m for m in mirrors if self.field[ArrayResponse.degree(m.angle_rad)]]
 
     def _direction(
