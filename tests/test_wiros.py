@@ -255,3 +255,21 @@ def test_rover_convert_says_what_reads_a_wiros_bag_instead_of_writing_a_dataset_
     assert result.returncode == 2 and not out.exists()
     assert len(result.stderr.strip().splitlines()) == 1
     assert "/csi is WiROS's rf_msgs/msg/Wifi" in result.stderr and "rover aoa BAG" in result.stderr
+
+
+@pytest.mark.parametrize(("bw", "chan", "bins", "rotation"), [(40, 151, 128, 1j), (20, 149, 64, 1.0)])
+def test_other_bandwidths_rotate_and_keep_as_the_chip_records_them(tmp_path, bw, chan, bins, rotation):
+    """At 40 MHz the chip rotates its lower 64 bins by j (WiROS undoes it by -j); at 20 MHz it
+    rotates none: the bag reads back as the antennas received it, at the 108 or 50 kept
+    subcarriers, centred on the channel's frequency."""
+    subcarriers = np.arange(-bins // 2, bins // 2)
+    centre = 5000e6 + 5e6 * chan
+    csi = plane_wave(SQUARE_19MM, ANGLE_DEG, centre, subcarriers, np.zeros(0), seed=5).csi
+    chip = csi.copy()
+    chip[:, :64] *= rotation
+    frames = read_capture(write_ros2(tmp_path / "wiros", chip, bw=bw, chan=chan))
+    kept = wiros.KEPT_SUBCARRIERS[bw * 1e6]
+    assert len(kept) == {40: 108, 20: 50}[bw]
+    np.testing.assert_array_equal(frames.subcarriers, kept)
+    np.testing.assert_allclose(frames.csi, csi[:, kept + bins // 2], rtol=0, atol=1e-12)
+    assert frames.bandwidth_hz == bw * 1e6 and (frames.centre_freq_hz == centre).all()
