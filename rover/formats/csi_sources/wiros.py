@@ -30,13 +30,13 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from rover.errors import BadInput
+from rover.formats.bag import MAGIC as MCAP_MAGIC
 from rover.formats.csi_sources.frames import CsiFrames
 from rover.formats.wifi import SUBCARRIER_SPACING_HZ, channel_freq_hz
 
 WIFI_TYPE = "rf_msgs/msg/Wifi"
 BEARING_TYPE = "rf_msgs/msg/Bearing"
 ROS1_MAGIC = b"#ROSBAG V2.0"
-MCAP_MAGIC = b"\x89MCAP"
 
 
 def _kept(edge: int, dc: int, pilots: tuple[int, ...]) -> np.ndarray:
@@ -123,18 +123,17 @@ def _topic(path: Path, reader: AnyReader, topic: str | None) -> str:
     return "/csi" if "/csi" in found else found[0]
 
 
-def _messages(path: Path, topic: str | None) -> tuple[list[Any], list[int], str]:
-    """The Wifi messages of the topic (decoded), their log times (ns), and the topic."""
+def _messages(path: Path, topic: str | None) -> tuple[list[Any], str]:
+    """The Wifi messages of the topic (decoded), and the topic."""
     reader = _open(path)
     try:
         chosen = _topic(path, reader, topic)
         connections = [c for c in reader.connections if c.topic == chosen]
         messages: list[Any] = []
-        log_ns: list[int] = []
         records = iter(reader.messages(connections=connections))
         while True:
             try:
-                conn, stamp, raw = next(records)
+                conn, _stamp, raw = next(records)
                 msg = reader.deserialize(raw, conn.msgtype)
             except StopIteration:
                 break
@@ -142,10 +141,9 @@ def _messages(path: Path, topic: str | None) -> tuple[list[Any], list[int], str]
                 at = f"message {len(messages) + 1} of {chosen}"
                 raise BadInput(f"{path}: {at}: cannot read: {type(exc).__name__}: {exc}") from None
             messages.append(msg)
-            log_ns.append(stamp)
     finally:
         reader.close()
-    return messages, log_ns, chosen
+    return messages, chosen
 
 
 def _fields(path: Path, topic: str, msg: Any) -> None:
@@ -161,7 +159,7 @@ def read(path: str | Path, topic: str | None = None, compensation: str | Path | 
     in `dropped`), at the kept subcarriers, compensated when `compensation` (a file or a folder of
     WiROS's `RX_ID-CHAN.npy`) is given."""
     path = Path(path)
-    messages, _log_ns, chosen = _messages(path, topic)
+    messages, chosen = _messages(path, topic)
     if not messages:
         raise BadInput(f"{path}: {chosen} holds no message")
     _fields(path, chosen, messages[0])
