@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -113,13 +115,19 @@ def main() -> None:
     ap.add_argument("--hall-seeds", type=int, nargs="*", default=[1], help="long_hall's seeds (none: skip it)")
     ap.add_argument("--regimes", nargs="+", choices=list(REGIMES), default=list(REGIMES))
     ap.add_argument("--json", type=Path, help="also write the figures here")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at once (each takes about a core)")
     args = ap.parse_args()
-    figures: dict[str, dict[str, Any]] = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        for scenario, seeds in (("paper", args.seeds), ("long_hall", args.hall_seeds)):
-            for seed in seeds:
-                for regime in args.regimes:
-                    figures[f"{SCENARIOS[scenario]}{seed}_{regime}"] = run(scenario, seed, regime, Path(tmp))
+    runs = [
+        (scenario, seed, regime)
+        for scenario, seeds in (("paper", args.seeds), ("long_hall", args.hall_seeds))
+        for seed in seeds
+        for regime in args.regimes
+    ]
+    with tempfile.TemporaryDirectory() as tmp, ThreadPoolExecutor(args.jobs) as pool:
+        done = pool.map(lambda r: run(*r, Path(tmp)), runs)
+        figures = {
+            f"{SCENARIOS[scenario]}{seed}_{regime}": f for (scenario, seed, regime), f in zip(runs, done, strict=True)
+        }
     for key, f in figures.items():
         alone = figures.get(key.split("_")[0] + "_none", {}).get("robot_odometry_alone_m")
         if alone:
