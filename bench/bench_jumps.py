@@ -124,7 +124,7 @@ def main() -> None:
         for regime in args.regimes
     ]
     with tempfile.TemporaryDirectory() as tmp, ThreadPoolExecutor(args.jobs) as pool:
-        done = pool.map(lambda r: run(*r, Path(tmp)), runs)
+        done = pool.map(lambda r: run(r[0], r[1], r[2], Path(tmp)), runs)
         figures = {
             f"{SCENARIOS[scenario]}{seed}_{regime}": f for (scenario, seed, regime), f in zip(runs, done, strict=True)
         }

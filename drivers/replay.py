@@ -8,6 +8,7 @@ on `setup`, stamped at the first message.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Iterator
@@ -19,10 +20,12 @@ import numpy as np
 
 from rover.errors import BadInput, SpecError
 from rover.formats.bag import BagReader, shown
-from rover.formats.bearings_csv import read_bearings
+from rover.formats.bearings_csv import Bearings, read_bearings
+from rover.formats.csi_sources.wiros import looks_like_bag
 from rover.formats.dataset import SETUP_METADATA
 from rover.formats.dataset import TOPICS as DEFAULT_TOPICS
 from rover.formats.rig import load_rig
+from rover.formats.wiros_bearings import read_wiros_bearings
 from rover.messages import Raw, cdr_stamp_ns, header, make, message_class
 from rover.operator import Emit, Out, Source, Watermark
 from rover.pipeline.params import Checked, PositiveFloat
@@ -40,8 +43,16 @@ class ReplayParams(Checked):
     setup: str = ""
     """A setup.yaml to send instead of the dataset's own rig description (or when it has none)."""
     bearings: str = ""
-    """A CSV of bearings from another AoA front end (rover.formats.bearings_csv), sent on `aoa` in
-    time order among the dataset's messages: the SLAM then runs from them, no CSI needed."""
+    """Bearings from another AoA front end, sent on `aoa` in time order among the dataset's
+    messages: the SLAM then runs from them, no CSI needed. A CSV (rover.formats.bearings_csv), or a
+    ROS bag of WiROS's `rf_msgs/msg/Bearing` (rover.formats.wiros_bearings)."""
+    bearings_topic: str = ""
+    """the bag's topic of rf_msgs/msg/Bearing (empty: its one, or /bearing among several)"""
+    bearing_std_deg: PositiveFloat = 10.0
+    """the std of a bag's bearings, which carry none (a real building's: a median error of 6-12 deg)"""
+    radio_yaw_deg: float = 0.0
+    """where the radio that measured a bag's bearings faces on the robot (deg, counterclockwise from
+    its x axis): their angles are in the radio's frame"""
 
 
 class DatasetReplay(Source):
@@ -76,7 +87,7 @@ class DatasetReplay(Source):
                 raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, imu, odom)")
         self._port_of = {topic: port for port, topic in p.topics.items()}
         self._setup_yaml, self._channels, self._span = self._inspect()
-        self._bearings = read_bearings(p.bearings) if p.bearings else None
+        self._bearings = self._read_bearings() if p.bearings else None
         self._sent = 0
         """bearings of the file sent so far"""
         self._done = 0
@@ -88,6 +99,17 @@ class DatasetReplay(Source):
             if self._setup_yaml is not None:
                 log.warning("dataset_replay: %s replaces the rig description stored in %s", p.setup, self.path)
             self._setup_yaml = rig.text
+
+    def _read_bearings(self) -> Bearings:
+        """The `bearings` file's: a CSV, or a bag of rf_msgs/msg/Bearing (what it drops counted)."""
+        p = self.params
+        if not looks_like_bag(Path(p.bearings)):
+            return read_bearings(p.bearings)
+        std, yaw = math.radians(p.bearing_std_deg), math.radians(p.radio_yaw_deg)
+        bearings, dropped = read_wiros_bearings(p.bearings, std, yaw, p.bearings_topic or None)
+        for reason, count in dropped.items():
+            self.drop(reason, count)
+        return bearings
 
     def _inspect(self) -> tuple[str | None, dict[str, str], tuple[int, int] | None]:
         """Read the summary: which wanted topics exist with the right types, the rig description,

@@ -108,26 +108,32 @@ def holds_wifi(path: Path) -> bool:
         return False
 
 
-def _topic(path: Path, reader: AnyReader, topic: str | None) -> str:
-    """The Wifi topic to read: `topic`, else the bag's one, else /csi among several."""
-    found = sorted({c.topic for c in reader.connections if c.msgtype == WIFI_TYPE})
+DEFAULT_TOPICS = {WIFI_TYPE: "/csi", BEARING_TYPE: "/bearing"}
+"""where WiROS's nodes publish each message"""
+
+
+def _topic(path: Path, reader: AnyReader, topic: str | None, msgtype: str) -> str:
+    """The topic of `msgtype` to read: `topic`, else the bag's one, else WiROS's among several."""
+    found = sorted({c.topic for c in reader.connections if c.msgtype == msgtype})
     listing = ", ".join(f"{c.topic} ({c.msgtype})" for c in reader.connections) or "none"
+    default = DEFAULT_TOPICS[msgtype]
     if topic is not None:
         if topic not in found:
-            raise BadInput(f"{path}: no {WIFI_TYPE} on {topic}; topics there: {listing}")
+            raise BadInput(f"{path}: no {msgtype} on {topic}; topics there: {listing}")
         return topic
     if not found:
-        raise BadInput(f"{path}: no {WIFI_TYPE} topic; topics there: {listing}")
-    if len(found) > 1 and "/csi" not in found:
-        raise BadInput(f"{path}: several {WIFI_TYPE} topics ({', '.join(found)}): choose one with --topic")
-    return "/csi" if "/csi" in found else found[0]
+        raise BadInput(f"{path}: no {msgtype} topic; topics there: {listing}")
+    if len(found) > 1 and default not in found:
+        raise BadInput(f"{path}: several {msgtype} topics ({', '.join(found)}): choose one with --topic")
+    return default if default in found else found[0]
 
 
-def _messages(path: Path, topic: str | None) -> tuple[list[Any], str]:
-    """The Wifi messages of the topic (decoded), and the topic."""
+def messages_of(path: Path, topic: str | None, msgtype: str = WIFI_TYPE) -> tuple[list[Any], str]:
+    """The messages of `msgtype` on the topic (decoded), and the topic; BadInput naming the message
+    that cannot be read."""
     reader = _open(path)
     try:
-        chosen = _topic(path, reader, topic)
+        chosen = _topic(path, reader, topic, msgtype)
         connections = [c for c in reader.connections if c.topic == chosen]
         messages: list[Any] = []
         records = iter(reader.messages(connections=connections))
@@ -159,7 +165,7 @@ def read(path: str | Path, topic: str | None = None, compensation: str | Path | 
     in `dropped`), at the kept subcarriers, compensated when `compensation` (a file or a folder of
     WiROS's `RX_ID-CHAN.npy`) is given."""
     path = Path(path)
-    messages, chosen = _messages(path, topic)
+    messages, chosen = messages_of(path, topic)
     if not messages:
         raise BadInput(f"{path}: {chosen} holds no message")
     _fields(path, chosen, messages[0])
