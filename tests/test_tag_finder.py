@@ -27,15 +27,16 @@ def test_a_tag_not_localized_says_which_evidence_is_missing():
     assert found(25.0, 0.8, 10.0).clear(s), "at the thresholds nothing is missing"
 
 
-def test_a_tag_is_started_until_localized_unless_the_search_placed_it_or_a_window_after_a_reexamination():
-    """The convex passes start a tag that is not localized and that the search never placed; one the
-    search placed only for a window's worth of epochs after the window re-examined it."""
+def test_a_tag_is_started_until_localized_or_a_window_after_the_search_placed_or_reexamined_it():
+    """The convex passes start a tag that is not localized: one the search placed, for a window's
+    worth of epochs after it did or after the window last re-examined it; one it never placed,
+    until it is localized."""
     finder = TagFinder()
     localized = np.array([False, False, True])
-    finder.placed[0] = -1  # placed by the search; tag 1 never placed; tag 2 localized
-    assert list(finder.starting(localized, 130, window_epochs=30)) == [False, True, False]
+    finder.placed[0] = 100  # placed by the search at epoch 100; tag 1 never placed; tag 2 localized
+    assert list(finder.starting(localized, 130, window_epochs=30)) == [True, True, False]
+    assert list(finder.starting(localized, 131, window_epochs=30)) == [False, True, False]
     finder.reexamined(0, 140)
     finder.reexamined(1, 140)  # never placed: nothing to restart
     assert finder.placed == {0: 140}
-    assert list(finder.starting(localized, 170, window_epochs=30)) == [True, True, False]
-    assert list(finder.starting(localized, 171, window_epochs=30)) == [False, True, False]
+    assert list(finder.starting(localized, 160, window_epochs=30)) == [True, True, False]

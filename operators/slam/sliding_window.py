@@ -14,8 +14,8 @@ attitudes), which makes every constraint linear in the state:
 The cross product is the pseudolinear bearing estimator, biased toward short ranges as the AoA
 noise grows (Dogancay 2004), and reweighting by the current distance feeds that bias. Each update
 therefore ends with Gauss-Newton steps on the true angle residual (atan2) from the convex solution,
-or, once every tag in use is localized or was placed by the search, from the last estimate alone
-(the convex passes are there to start tags the search did not place: TagFinder.starting).
+or, once every tag in use is localized or was placed by the search a window ago, from the last
+estimate alone (the convex passes are there to start tags: TagFinder.starting).
 The distances in the weights have a floor (no tag is closer than `min_range_m` to the antennas).
 
 This module holds the epochs and orchestrates an update; its parts (layout, factors, candidates,
@@ -368,7 +368,7 @@ class SlidingWindow:
         p.mean[at] = found.position
         p.grad[at] = 0.0
         self.active[t] = True
-        self.finder.placed[t] = -1
+        self.finder.placed[t] = len(self.finals) + len(self.epochs)
         inlier = found.choice >= 0
         self.jumps.start(t, jumps[np.flatnonzero(inlier), found.choice[inlier]])  # the search's evidence
 

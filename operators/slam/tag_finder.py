@@ -53,26 +53,23 @@ class TagFinder:
     searching: Search | None = field(default=None, repr=False)
     """the tag search under way, if any"""
     placed: dict[int, int] = field(default_factory=dict)
-    """per tag slot the search placed: the epoch count when the window last relaxed its prior for
-    disagreeing bearings (re-examined it), -1 before it ever did"""
+    """per tag slot the search placed: the epoch count when it did, or when the window last relaxed
+    its prior for disagreeing bearings (re-examined it)"""
 
     def reexamined(self, tag_slot: int, epochs: int) -> None:
         """The window relaxed the tag's prior at the epoch count `epochs`: if the search placed it,
-        the convex passes start it again for a window."""
+        the convex passes start it again."""
         if tag_slot in self.placed:
             self.placed[tag_slot] = epochs
 
     def starting(self, localized: np.ndarray, epochs: int, window_epochs: int) -> np.ndarray:
-        """Per tag slot, at the epoch count `epochs`: whether the window's convex program is there to
-        start it. A tag never placed is, until localized. One the search placed is not: the search's
-        place, from all its bearings, is a better start for the Gauss-Newton steps than the convex
-        relaxation of the window's few, whose prior from the search holds little of the range (the
-        search's earlier bearings weighed down; `long_hall` seed 1: a tag found 0.21 m from the
-        truth was moved 2 m along its ray by the first convex pass, and published there at 4-11
-        sigma). One the window re-examined is, for `window_epochs` after it did."""
+        """Per tag slot, at the epoch count `epochs`: whether the window's convex program is still
+        there to start it. A tag not localized is, unless the search placed (or the window
+        re-examined) it more than `window_epochs` ago: by then the window's last estimate is as good
+        a start for its Gauss-Newton steps (a tag never placed is started until localized)."""
         start = ~localized
         for t, at in self.placed.items():
-            start[t] &= at >= 0 and epochs - at <= window_epochs
+            start[t] &= epochs - at <= window_epochs
         return start
 
     def hear(self, tag_slot: int, stamp_ns: int, angles: np.ndarray, stds: np.ndarray, jumps: np.ndarray) -> None:

@@ -89,12 +89,6 @@ RAY_POINTS = 8
 RANGE_CHECK = np.array([1.5, 2 / 3])
 """a found position's distance from the robot path scaled by these must cost the margin too: a
 place the bearings would fit as well farther out (a ghost at the edge of the search) is no place"""
-BASIN_POINTS = 8
-"""points between a found place and a close rival where the cost is checked for a valley between"""
-BASIN_RISE = 1.0
-"""how much the cost may fall from one such point to the next and still rise all the way"""
-BASIN_RIVALS = 32
-"""close rivals checked for being the found place's own valley"""
 STEP_LIMIT_M = 5.0
 """a Gauss-Newton step longer than this is an unconstrained range, not a refinement"""
 
@@ -280,8 +274,8 @@ def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found
     rate = float(model_rates(combinations(b.jumps))[np.argmin(model_costs(start[None], b, s.cap_sigma)[:, 0])])
     position, choice, info = _fit(start, b, rate, s)
     best = float(model_costs(position[None], b, s.cap_sigma).min())
-    far = np.linalg.norm(q - position, axis=1) > _reach(b.robot, position, s)
-    margin = _margin(position, best, q[far], score[far], b, s)
+    elsewhere = score[np.linalg.norm(q - position, axis=1) > _reach(b.robot, position, s)]
+    margin = float(elsewhere.min() - best) if len(elsewhere) else math.inf
     inlier = choice >= 0
     if inlier.any():
         centre = b.robot[inlier].mean(axis=0)
@@ -290,30 +284,6 @@ def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found
     parallax = parallax_deg(position, b.robot[inlier])
     held = _held(choice, b.jumps, rate)
     return Found(position, choice, info, margin, float(np.mean(inlier)), parallax, best, held, rate)
-
-
-def _margin(
-    position: np.ndarray, best: float, q: np.ndarray, score: np.ndarray, b: Bearings, s: SearchSettings
-) -> float:
-    """How much more than `best` (the cost at `position`) the cheapest place elsewhere (q (H, 2),
-    their costs) costs, leaving out the places of the same valley: its cost rises all the way from
-    `position` to them (within BASIN_RISE a step, on BASIN_POINTS points between). Bearings from a
-    short baseline pin a tag's direction long before its range, so its cost rises slowly along the
-    ray: a place there is the tail of this estimate (its covariance says how far it reaches, and
-    the range check below bounds it), not another place the tag could be. Only the cheapest
-    BASIN_RIVALS below the margin are checked; an unchecked one stays a rival."""
-    order = np.argsort(score)
-    close = order[score[order] - best < s.min_margin][:BASIN_RIVALS]
-    if len(close) == 0:
-        return float(score[order[0]] - best) if len(order) else math.inf
-    along = np.linspace(0.0, 1.0, BASIN_POINTS + 2)[1:]
-    path = position[None, None, :] + along[None, :, None] * (q[close] - position)[:, None, :]  # (R, P + 1, 2)
-    cost = model_costs(path.reshape(-1, 2), b, s.cap_sigma).min(axis=0).reshape(len(close), -1)
-    steps = np.diff(np.concatenate([np.full((len(close), 1), best), cost], axis=1), axis=1)
-    valley = np.zeros(len(score), bool)
-    valley[close] = np.all(steps >= -BASIN_RISE, axis=1)
-    rivals = score[~valley]
-    return float(rivals.min() - best) if len(rivals) else math.inf
 
 
 def _reach(robot_xy: np.ndarray, position: np.ndarray, s: SearchSettings) -> float:
