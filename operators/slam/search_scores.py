@@ -5,8 +5,8 @@ The chains hold a combination and step to another at some moment (CSI Tool issue
 #113). So a place's cost is, over the best sequence of combinations through the bearings (in time
 order), each bearing's candidate of its combination as its -2 log likelihood (its squared
 residual in stds plus what its breadth costs: a broad candidate fits anywhere, so tells little),
-capped at cap^2 (a bearing no candidate of which fits costs the same anywhere), plus twice the -log odds of
-each transition: the chains redraw their combination (uniformly, the same one included) at a rate
+capped at cap^2 (a bearing no candidate of which fits costs the same anywhere), plus twice the
+-log odds of each transition: the chains redraw their combination (uniformly, the same one included) at a rate
 per second, so between two bearings a gap apart one of the C - 1 others follows with chance
 p / C, p = 1 - exp(-rate gap), the same with 1 - p (C - 1) / C (a robot that stood still a minute
 between two bearings may well have seen a step). The rate is not known before the tag is found, so
@@ -41,7 +41,7 @@ circle costs about the cap anywhere: it fits every place, so it tells none. With
 every retune left each burst a candidate 150-180 deg broad that fit any place, and ghosts 2-4 m
 from a tag fit 97% of its bearings: `paper` seed 3 never localized two of its tags (the margin at
 96 bearings 3; with it, 191). 10 deg is a LOS burst's std: a Gaussian of it and a uniform outlier
-share of 15% cross at 3 stds."""
+share of 14% cross at 3 stds."""
 SCORE_CHUNK = 65_536
 """candidate residuals (bearings x candidates x places) scored per step: half a megabyte, in cache"""
 
