@@ -3,10 +3,9 @@ objective of the tag search (`tag_search`), for thousands of places at once.
 
 The chains hold a combination and step to another at some moment (CSI Tool issues #23, #295,
 #113). So a place's cost is, over the best sequence of combinations through the bearings (in time
-order), each bearing's candidate of its combination as its -2 log likelihood (its squared
-residual in stds plus what its breadth costs: a broad candidate fits anywhere, so tells little),
-capped at cap^2 (a bearing no candidate of which fits costs the same anywhere), plus twice the
--log odds of each transition: the chains redraw their combination (uniformly, the same one included) at a rate
+order), each bearing's candidate of its combination as a squared residual in stds, capped at
+cap^2 (a bearing no candidate of which fits costs the same anywhere), plus twice the -log odds of
+each transition: the chains redraw their combination (uniformly, the same one included) at a rate
 per second, so between two bearings a gap apart one of the C - 1 others follows with chance
 p / C, p = 1 - exp(-rate gap), the same with 1 - p (C - 1) / C (a robot that stood still a minute
 between two bearings may well have seen a step). The rate is not known before the tag is found, so
@@ -34,14 +33,6 @@ REDRAWS_PER_S = np.array([0.1, 1.0, 10.0]) / 60
 six seconds"""
 FREE = math.inf
 """the redraw rate of the model in which every bearing draws its combination afresh"""
-REFERENCE_STD_RAD = math.radians(10.0)
-"""the std of a candidate that is an outlier (costs the cap) beyond cap stds. A candidate's cost is
-its -2 log likelihood, so a broader one pays for its breadth (`breadth`) and one as broad as the
-circle costs about the cap anywhere: it fits every place, so it tells none. Without it, a jump at
-every retune left each burst a candidate 150-180 deg broad that fit any place, and ghosts 2-4 m
-from a tag fit 97% of its bearings: `paper` seed 3 never localized two of its tags (the margin at
-96 bearings 3; with it, 191). 10 deg is a LOS burst's std: a Gaussian of it and a uniform outlier
-share of 14% cross at 3 stds."""
 SCORE_CHUNK = 65_536
 """candidate residuals (bearings x candidates x places) scored per step: half a megabyte, in cache"""
 
@@ -90,23 +81,15 @@ def _candidate_index(jumps: np.ndarray, combos: int) -> np.ndarray:
     return index.reshape(len(jumps), combos, -1)
 
 
-def breadth(stds: np.ndarray) -> np.ndarray:
-    """What a candidate of each std (rad) pays for its breadth: 2 log(std / REFERENCE_STD_RAD), the
-    Gaussian's normalization in -2 log likelihood."""
-    return 2 * np.log(stds / REFERENCE_STD_RAD)
-
-
 def _candidate_costs(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float) -> np.ndarray:
-    """(n, K, H) each candidate's cost at places q (H, 2): its squared residual in stds plus its
-    `breadth`, capped at cap^2, a padding candidate (NaN) at the cap. With the candidates wrapped
-    once, a residual's size is the smaller of |difference| and a turn less it: one atan2 per place
-    and bearing."""
+    """(n, K, H) capped squared residuals in stds of places q (H, 2) against the candidates (n, K),
+    a padding candidate (NaN) at the cap. With the candidates wrapped once, a residual's size is the
+    smaller of |difference| and a turn less it: one atan2 per place and bearing."""
     predicted = np.arctan2(q[None, :, 1] - robot[:, 1, None], q[None, :, 0] - robot[:, 0, None])  # (n, H)
     r = np.abs(predicted[:, None, :] - wrap_angle(angles)[:, :, None])
     np.minimum(r, 2 * math.pi - r, out=r)
     r /= stds[:, :, None]
     r *= r
-    r += breadth(stds)[:, :, None]
     return np.fmin(r, cap**2, out=r)
 
 

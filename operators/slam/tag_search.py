@@ -24,7 +24,6 @@ from rover.geometry import parallax_deg, wrap_angle
 from rover.operators.slam.search_scores import (
     FREE,
     Bearings,
-    breadth,
     combinations,
     decode,
     model_costs,
@@ -151,19 +150,17 @@ def _hypotheses(robot: np.ndarray, angles: np.ndarray, s: SearchSettings) -> np.
 
 
 def _linearized(q: np.ndarray, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray, cap: float):
-    """At q: the capped score (as `search_scores`), each bearing's best candidate (-1 outlier: beyond
-    cap of its stds), and the inliers' residuals and Jacobians."""
+    """At q: the capped score, each bearing's best candidate (-1 outlier), and the inliers'
+    residuals and Jacobians."""
     r = _residuals(q[None], robot, angles, stds)[0]
-    cost = r**2 + breadth(stds)
-    best = np.argmin(cost, axis=1)
-    at = np.arange(len(r))
-    rb = r[at, best]
+    best = np.argmin(r**2, axis=1)
+    rb = r[np.arange(len(r)), best]
     inlier = np.abs(rb) < cap
     d = q[None, :] - robot
     range2 = np.maximum(np.sum(d**2, axis=1), 1e-6)
-    sb = stds[at, best]
+    sb = stds[np.arange(len(r)), best]
     jac = np.stack([-d[:, 1], d[:, 0]], axis=1) / (range2 * sb)[:, None]
-    score = float(np.minimum(cost[at, best], cap**2).sum())
+    score = float(np.minimum(rb**2, cap**2).sum())
     return score, np.where(inlier, best, -1), jac[inlier], rb[inlier]
 
 
