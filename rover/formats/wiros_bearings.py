@@ -43,7 +43,7 @@ def read_wiros_bearings(
     path = Path(path)
     if not math.isfinite(std_rad) or std_rad <= 0:
         raise BadInput(f"{path}: the bearings' std must be positive, got {std_rad}")
-    messages, chosen = messages_of(path, topic, BEARING_TYPE)
+    messages, chosen = messages_of(path, topic, BEARING_TYPE, choose="replay.bearings_topic")
     missing = [f for f in ("header", "txmac", "aoa") if messages and not hasattr(messages[0], f)]
     if missing:
         raise BadInput(f"{path}: {chosen}: its {BEARING_TYPE} has no {', '.join(missing)}: not WiROS's layout")

@@ -112,8 +112,9 @@ DEFAULT_TOPICS = {WIFI_TYPE: "/csi", BEARING_TYPE: "/bearing"}
 """where WiROS's nodes publish each message"""
 
 
-def _topic(path: Path, reader: AnyReader, topic: str | None, msgtype: str) -> str:
-    """The topic of `msgtype` to read: `topic`, else the bag's one, else WiROS's among several."""
+def _topic(path: Path, reader: AnyReader, topic: str | None, msgtype: str, choose: str) -> str:
+    """The topic of `msgtype` to read: `topic`, else the bag's one, else WiROS's among several
+    (`choose`: the option that names one)."""
     found = sorted({c.topic for c in reader.connections if c.msgtype == msgtype})
     listing = ", ".join(f"{c.topic} ({c.msgtype})" for c in reader.connections) or "none"
     default = DEFAULT_TOPICS[msgtype]
@@ -124,16 +125,18 @@ def _topic(path: Path, reader: AnyReader, topic: str | None, msgtype: str) -> st
     if not found:
         raise BadInput(f"{path}: no {msgtype} topic; topics there: {listing}")
     if len(found) > 1 and default not in found:
-        raise BadInput(f"{path}: several {msgtype} topics ({', '.join(found)}): choose one with --topic")
+        raise BadInput(f"{path}: several {msgtype} topics ({', '.join(found)}): choose one with {choose}")
     return default if default in found else found[0]
 
 
-def messages_of(path: Path, topic: str | None, msgtype: str = WIFI_TYPE) -> tuple[list[Any], str]:
+def messages_of(
+    path: Path, topic: str | None, msgtype: str = WIFI_TYPE, choose: str = "--topic"
+) -> tuple[list[Any], str]:
     """The messages of `msgtype` on the topic (decoded), and the topic; BadInput naming the message
-    that cannot be read."""
+    that cannot be read, or `choose`, the option that names a topic, among several."""
     reader = _open(path)
     try:
-        chosen = _topic(path, reader, topic, msgtype)
+        chosen = _topic(path, reader, topic, msgtype, choose)
         connections = [c for c in reader.connections if c.topic == chosen]
         messages: list[Any] = []
         records = iter(reader.messages(connections=connections))
