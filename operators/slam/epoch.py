@@ -78,14 +78,14 @@ class Bearings:
 
 
 def padded_rows(blocks: list[np.ndarray], width: int, pad: float) -> np.ndarray:
-    """The 2-D `blocks` stacked into one (rows, width) array, each row filled out with `pad` (one
-    slice assignment per block: np.pad per block cost a quarter of the SLAM's time)."""
+    """The 2-D `blocks` stacked into one (rows, width) array, each row filled out with `pad`: one
+    concatenation and one masked assignment, whatever the number of blocks (a slice assignment per
+    block cost a millisecond per tag search of 400 bearings)."""
     dtype = np.result_type(*blocks) if blocks else np.float64
-    out = np.full((sum(len(b) for b in blocks), width), pad, dtype=dtype)
-    row = 0
-    for block in blocks:
-        out[row : row + len(block), : block.shape[1]] = block
-        row += len(block)
+    widths = np.repeat([b.shape[1] for b in blocks], [len(b) for b in blocks]).astype(int)
+    out = np.full((len(widths), width), pad, dtype=dtype)
+    if len(widths):
+        out[np.arange(width)[None, :] < widths[:, None]] = np.concatenate([b.ravel() for b in blocks])
     return out
 
 

@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -53,6 +54,14 @@ class Edge:
         self.chol = np.linalg.cholesky(self.covariance)
         lmat = np.concatenate([edge_matrix(np.array([self.dt]))[0], self.bias_jacobian], axis=1)
         self.block = lmat.T @ np.linalg.solve(self.covariance, lmat)
+
+    def with_bias_columns(self, extra: int) -> Edge:
+        """The same edge over `extra` more bias states that do not move it (zero Jacobian columns,
+        zero rows and columns of `block`), without factorizing its covariance again."""
+        out = copy.copy(self)
+        out.bias_jacobian = np.pad(self.bias_jacobian, ((0, 0), (0, extra)))
+        out.block = np.pad(self.block, ((0, extra), (0, extra)))
+        return out
 
 
 def huber_cost(r: np.ndarray, m: float) -> np.ndarray:

@@ -229,7 +229,7 @@ class SlidingWindow:
             if edge.bias_jacobian.shape != (4, self.accel_biases):
                 raise ValueError(f"an edge's bias Jacobian is {edge.bias_jacobian.shape}, not (4, {self.accel_biases})")
             if self.scale:  # the odometry does not move with the wheel scale
-                edge = Edge(edge.dt, edge.delta, edge.covariance, np.pad(edge.bias_jacobian, ((0, 0), (0, 1))))
+                edge = edge.with_bias_columns(1)
             last = self.x[self.shape.epoch(len(self.epochs) - 1)]
             delta = edge.delta - edge.bias_jacobian @ self._shared()
             state = np.concatenate([last[0:2] + last[2:4] * edge.dt + delta[2:4], last[2:4] + delta[0:2]])
