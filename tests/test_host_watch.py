@@ -89,7 +89,11 @@ def test_a_host_withdrawn_before_done_is_lost_with_its_reason(sessions):
     nuc = HostWatch(theirs, "p", "nuc", TIMEOUTS, "d1")
     nuc.declare("ready")
     base = token(theirs, "base", "ready")
+    watch.declare("ready")
     assert watch.wait_ready(["nuc", "base", "laptop"], threading.Event(), WAIT_S, "")
+    # as a host does before it runs: the NUC has seen the laptop ready, so the laptop's subscriber
+    # (declared before its token) has reached the NUC's session and the bye is not put to nobody
+    assert nuc.wait_ready(["nuc", "laptop"], threading.Event(), WAIT_S, "")
     nuc.say_bye("stopped by SIGINT")
     wait_until(lambda: "nuc" in watch.byes, "the bye arrived", timeout_s=WAIT_S, poll_s=0.01)
     nuc.close()

@@ -277,6 +277,21 @@ operators:
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 5
 
 
+def test_what_a_host_built_is_kept_out_of_the_collectors_passes_while_it_runs(tmp_path):
+    """A full pass over a host's modules and operators took 74-167 ms mid-run: longer than a dwell."""
+    pipeline = tmp_path / "frozen.yaml"
+    pipeline.write_text("""\
+name: frozen
+operators:
+  tick:   {uses: toyops.Ticker, params: {rate_hz: 1000, count: 9}}
+  check:  {uses: toyops.FrozenCheck, inputs: {imu: tick/imu}}
+  record: {uses: recorder, inputs: {imu: check/imu}, params: {out: out}}
+""")
+    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
+    assert proc.returncode == 0 and "dropped" not in proc.stderr, proc.stderr
+    assert len(read_bag(tmp_path / "out" / "results.mcap")) == 9
+
+
 def test_the_profile_says_where_each_operators_time_went(tmp_path):
     """A sink that sleeps 20 ms per message shows it as handler time, the replay's sends wait on its
     full inbox, and a sink that takes 0.1 s to close shows that as its close."""

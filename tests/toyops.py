@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 import math
 import threading
@@ -99,6 +100,17 @@ class Thin(_Counting):
             yield Emit("imu", msg)
         else:
             self.drop("messages of even rank")
+
+
+class FrozenCheck(_Counting):
+    """Passes messages on; drops those it handles while what the run built is still in the garbage
+    collector's generations (the runtime freezes it before the run)."""
+
+    def on_input(self, port, msg, stamp_ns):
+        if gc.get_freeze_count() and not any(o is self for o in gc.get_objects()):
+            yield Emit("imu", msg)
+        else:
+            self.drop("messages handled with the run's operators still collected")
 
 
 class Explode(_Counting):
