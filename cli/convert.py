@@ -13,7 +13,12 @@ from rover.errors import BadInput
 def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
     """`rover convert` and its options."""
     p = sub.add_parser("convert", parents=[common], help="ROS 1/ROS 2 bags or a recording folder to a dataset")
-    p.add_argument("sources", nargs="+", metavar="SRC", help=".bag, ROS 2 bag folder, .db3, .mcap, recording folder")
+    p.add_argument(
+        "sources",
+        nargs="+",
+        metavar="SRC",
+        help=".bag, ROS 2 bag folder, .db3, .mcap, recording folder (CSI Tool or WiROS CSI)",
+    )
     p.add_argument("-o", "--output", required=True, help="the dataset to write (.mcap)")
     p.add_argument("--setup", help="setup.yaml (default: the recording folder's)")
     p.add_argument("--topic", action="append", metavar="ROLE=/NAME", help="source topic of csi, imu or odom")
@@ -21,6 +26,9 @@ def add_parser(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--end", type=seconds, help="seconds from the start (or absolute seconds)")
     p.add_argument("--truth", help="ground-truth trajectory: a TUM file, or a dataset with /groundtruth/pose")
     p.add_argument("--tags", help="ground-truth tags (CSV: id,channel,x,y,z,nlos)")
+    p.add_argument(
+        "--compensation", help="WiROS's static calibration for its CSI: an RX_ID-CHAN.npy file, or a folder of them"
+    )
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=run)
 
@@ -50,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
             force=args.force,
             command_line=shlex.join(["rover", *sys.argv[1:]]),
             progress=progress,
+            compensation=args.compensation,
         )
     finally:
         done()

@@ -21,9 +21,11 @@ from typing import Any, TypeVar
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
 
+from rover.datasets.capture_csi import capture_messages
 from rover.errors import BadInput, SpecError
 from rover.formats import dataset
 from rover.formats.bag import BagReader, BagWriter, check_output
+from rover.formats.csi_sources import wiros
 from rover.formats.rig import Rig, load_rig
 from rover.formats.truth import read_tags_csv, read_tum
 from rover.messages import Raw, cdr_stamp_ns, header, make, serialize
@@ -51,9 +53,12 @@ class Report:
     dropped: Counter = field(default_factory=Counter)
     resorted: Counter = field(default_factory=Counter)
     imu_in_g: bool = False
+    capture: bool = False
+    """the CSI is WiROS's rf_msgs/msg/Wifi, written decoded on dataset.CAPTURE_TOPIC"""
 
     def lines(self) -> list[str]:
-        out = [f"{role}: {topic} -> {OUTPUT_TOPICS.get(role, topic)}" for role, topic in self.topics.items()]
+        written = {**OUTPUT_TOPICS, "csi": dataset.CAPTURE_TOPIC} if self.capture else OUTPUT_TOPICS
+        out = [f"{role}: {topic} -> {written.get(role, topic)}" for role, topic in self.topics.items()]
         out += [f"wrote {n:,} messages on {topic}" for topic, n in sorted(self.written.items())]
         return out
 
@@ -111,16 +116,15 @@ def _choose_topics(reader: AnyReader, rig: Rig, overrides: dict[str, str]) -> di
         chosen[role] = topic
     if chosen["imu"] is None:
         raise BadInput(f"no IMU topic (sensor_msgs/msg/Imu) found; topics there: {listing}")
-    wifi = [t for t, m in by_topic.items() if m == "rf_msgs/msg/Wifi"]
-    if wifi and (chosen["csi"] in wifi or (chosen["csi"] is None and rig.topics.get("csi", "/csi") is not None)):
-        raise BadInput(
-            f"{chosen['csi'] or wifi[0]} is WiROS's rf_msgs/msg/Wifi, which `rover convert` does not take yet: "
-            "`rover aoa BAG --setup RIG` reads it; for a dataset of the IMU and odometry alone say so in the setup: "
-            "topics: {csi: null}"
-        )
+    wifi = [t for t, m in by_topic.items() if m == wiros.WIFI_TYPE]
+    if chosen["csi"] is None and rig.topics.get("csi", "/csi") is not None and wifi:
+        if len(wifi) > 1:
+            raise BadInput(f"several {wiros.WIFI_TYPE} topics ({', '.join(wifi)}): choose one with --topic csi=NAME")
+        chosen["csi"] = wifi[0]
     if chosen["csi"] is None and rig.topics.get("csi", "/csi") is not None:
         raise BadInput(
-            f"no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: {listing}. For an IMU/odometry-only "
+            f"no CSI topic (rover_msgs/msg/CsiFrame, or WiROS's {wiros.WIFI_TYPE}) found; topics there: {listing}. "
+            "For an IMU/odometry-only "
             "dataset say so in the setup: topics: {csi: null}"
         )
     return chosen
@@ -339,6 +343,7 @@ def convert(
     force: bool = False,
     command_line: str = "",
     progress: Callable[[int, int], None] | None = None,
+    compensation: str | Path | None = None,
 ) -> Report:
     """Convert bags to a dataset. The output is checked before any work (not a directory, not one
     of the inputs) and appears only when complete."""
@@ -375,6 +380,10 @@ def convert(
         except BadInput as exc:
             raise BadInput(f"{', '.join(map(str, sources.bags))}: {exc}") from None
         report.topics = {role: topic for role, topic in chosen.items() if topic is not None}
+        types = {c.topic: c.msgtype for c in reader.connections}
+        report.capture = chosen["csi"] is not None and types[chosen["csi"]] == wiros.WIFI_TYPE
+        if compensation is not None and not report.capture:
+            raise BadInput(f"--compensation {compensation}: it is WiROS's, and the CSI is no {wiros.WIFI_TYPE}")
         for line in (f"{role}: {topic}" for role, topic in report.topics.items()):
             log.info("topic %s", line)
         if chosen["csi"] is None:
@@ -382,7 +391,7 @@ def convert(
         lo, hi = _time_bound(start, reader.start_time), _time_bound(end, reader.start_time)
         if lo is not None and hi is not None and lo >= hi:
             raise BadInput(f"--start {start:g} is not before --end {end:g}: the window holds nothing")
-        role_of = {topic: role for role, topic in report.topics.items()}
+        role_of = {topic: role for role, topic in report.topics.items() if not (report.capture and role == "csi")}
         connections = [c for c in reader.connections if c.topic in role_of]
         total = sum(c.msgcount for c in connections)
         imu = _Imu(report)
@@ -414,6 +423,10 @@ def convert(
                 continue
             rows += [(s, len(rows) + k, OUTPUT_TOPICS[role], m) for k, (s, m) in enumerate(converted)]
         rows += [(s, len(rows) + k, OUTPUT_TOPICS["imu"], m) for k, (s, m) in enumerate(imu.flush())]
+        if report.capture:
+            assert chosen["csi"] is not None
+            captured = capture_messages(sources.bags, chosen["csi"], compensation, (lo, hi), report.dropped)
+            rows += [(s, len(rows) + k, dataset.CAPTURE_TOPIC, m) for k, (s, m) in enumerate(captured)]
         csi_types = [c.msgtype for c in connections if role_of[c.topic] == "csi"]
         _check_some_csi(", ".join(map(str, sources.bags)), report, chosen["csi"], csi_types, rows)
         if not rows and total and (lo is not None or hi is not None):

@@ -22,7 +22,7 @@ from rover.errors import BadInput, SpecError
 from rover.formats.bag import BagReader, shown
 from rover.formats.bearings_csv import Bearings, read_bearings
 from rover.formats.csi_sources.wiros import looks_like_bag
-from rover.formats.dataset import SETUP_METADATA
+from rover.formats.dataset import CAPTURE_TOPIC, CAPTURE_TYPE, SETUP_METADATA
 from rover.formats.dataset import TOPICS as DEFAULT_TOPICS
 from rover.formats.rig import load_rig
 from rover.formats.wiros_bearings import read_wiros_bearings
@@ -39,7 +39,7 @@ READ_FAILURE = "not a readable MCAP dataset"
 class ReplayParams(Checked):
     path: str = ""
     speed: Literal["max"] | PositiveFloat = "max"
-    topics: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TOPICS))
+    topics: dict[str, str] = field(default_factory=lambda: {**DEFAULT_TOPICS, "capture": CAPTURE_TOPIC})
     setup: str = ""
     """A setup.yaml to send instead of the dataset's own rig description (or when it has none)."""
     bearings: str = ""
@@ -56,12 +56,13 @@ class ReplayParams(Checked):
 
 
 class DatasetReplay(Source):
-    """Replays `/csi`, `/imu/data` and `/odom` of a dataset, and its rig description."""
+    """Replays `/csi` (or `/csi/capture`), `/imu/data` and `/odom` of a dataset, and its rig description."""
 
     cpu_weight = 1.2
 
     outputs = {
         "csi": Out("rover_msgs/msg/CsiFrame", "raw CSI Tool records"),
+        "capture": Out(CAPTURE_TYPE, "another tool's CSI, decoded, a transmitter per tag_id (a converted WiROS bag)"),
         "imu": Out("sensor_msgs/msg/Imu", "IMU samples"),
         "odom": Out("nav_msgs/msg/Odometry", "wheel odometry, when recorded"),
         "setup": Out("rover_msgs/msg/RigSetup", "the rig description, once at the start"),
@@ -84,7 +85,7 @@ class DatasetReplay(Source):
             raise BadInput(f"{self.path}: no such dataset file")
         for port in p.topics:
             if port not in self.outputs or port in ("setup", "aoa"):
-                raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, imu, odom)")
+                raise BadInput(f"dataset_replay: topics maps unknown port {port!r} (ports: csi, capture, imu, odom)")
         self._port_of = {topic: port for port, topic in p.topics.items()}
         self._setup_yaml, self._channels, self._span = self._inspect()
         self._bearings = self._read_bearings() if p.bearings else None

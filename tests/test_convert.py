@@ -137,7 +137,10 @@ def test_a_bag_without_csi_is_the_documented_error(tmp_path):
         str(tmp_path / "x.mcap"),
     )
     assert proc.returncode == 2
-    assert "no CSI topic (rover_msgs/msg/CsiFrame) found; topics there: /imu/data (sensor_msgs/msg/Imu)" in proc.stderr
+    assert (
+        "no CSI topic (rover_msgs/msg/CsiFrame, or WiROS's rf_msgs/msg/Wifi) found; topics there: /imu/data "
+        "(sensor_msgs/msg/Imu)" in proc.stderr
+    )
     assert "topics: {csi: null}" in proc.stderr
     assert list(tmp_path.iterdir()) == [setup]
 

@@ -17,7 +17,7 @@ from rover.formats.rig import (
 )
 from rover.formats.wifi import channel_freq_hz
 from rover.messages import make
-from rover.operators.channel_sweep.operator import ChannelSweep
+from rover.operators.channel_sweep.operator import ChannelSweep, SweepParams
 
 SETUP = """\
 receiver:
@@ -121,9 +121,16 @@ def test_tags_without_an_excitation_channel_need_their_channel():
 
 
 def test_a_channel_sweep_needs_the_excitation_channel():
+    """Live, at once; labelling a replay, at its first CSI Tool frame (a bare receiver's dataset holds
+    another tool's capture, which the sweep never sees)."""
     setup = make("rover_msgs/msg/RigSetup", setup_yaml=BARE + "tags: [{id: 1, channel: 149}]\n")
     with pytest.raises(BadInput, match=r"^channel_sweep: the setup has no excitation channel"):
-        list(ChannelSweep().on_input("setup", setup, 0))
+        list(ChannelSweep(SweepParams(mode="live")).on_input("setup", setup, 0))
+    sweep = ChannelSweep()
+    assert list(sweep.on_input("setup", setup, 0)) == []
+    frame = make("rover_msgs/msg/CsiFrame", channel=149)
+    with pytest.raises(BadInput, match=r"^channel_sweep: the setup has no excitation channel"):
+        list(sweep.on_input("frames", frame, 1))
 
 
 @pytest.mark.parametrize(

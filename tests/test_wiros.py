@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import T0_NS, run_rover
+from helpers import T0_NS, read_bag, run_rover
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Ros2Writer
@@ -21,6 +21,7 @@ from test_aoa_capture import SQUARE_19MM, plane_wave
 
 from rover.errors import BadInput
 from rover.formats.csi_sources import read_capture, wiros
+from rover.messages import deserialize
 
 WIFI_MSG = """\
 std_msgs/Header header
@@ -231,14 +232,16 @@ def test_the_message_copy_decodes_what_the_public_definition_encodes():
         assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, name
 
 
-def test_rover_convert_says_what_reads_a_wiros_bag_instead_of_writing_a_dataset_without_csi(tmp_path):
+def robot_bag(path: Path, csi: np.ndarray, macs: list[bytes]) -> Path:
+    """A robot's ROS 2 bag: WiROS's /csi (packets of `csi` from `macs`) and a resting IMU on /imu/data."""
     s = store()
-    bag, out = tmp_path / "robot", tmp_path / "robot.mcap"
-    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        csi = writer.add_connection("/csi", "rf_msgs/msg/Wifi", typestore=s)
-        imu = writer.add_connection("/imu/data", "sensor_msgs/msg/Imu", typestore=s)
-        for stamp, msg in messages(recorded(truth())[:5], s):
-            writer.write(csi, stamp, s.serialize_cdr(msg, "rf_msgs/msg/Wifi"))
+    with Ros2Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {
+            t: writer.add_connection(t, m, typestore=s)
+            for t, m in (("/csi", "rf_msgs/msg/Wifi"), ("/imu/data", "sensor_msgs/msg/Imu"))
+        }
+        for stamp, msg in messages(csi, s, macs=macs):
+            writer.write(conns["/csi"], stamp, s.serialize_cdr(msg, "rf_msgs/msg/Wifi"))
             imu_msg = s.types["sensor_msgs/msg/Imu"](
                 header=msg.header,
                 orientation=s.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
@@ -248,13 +251,48 @@ def test_rover_convert_says_what_reads_a_wiros_bag_instead_of_writing_a_dataset_
                 linear_acceleration=s.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=9.81),
                 linear_acceleration_covariance=np.zeros(9),
             )
-            writer.write(imu, stamp, s.serialize_cdr(imu_msg, "sensor_msgs/msg/Imu"))
+            writer.write(conns["/imu/data"], stamp, s.serialize_cdr(imu_msg, "sensor_msgs/msg/Imu"))
+    return path
+
+
+def test_rover_convert_writes_each_packet_as_rovers_csi_of_its_transmitters_tag(tmp_path):
+    """Two transmitters interleaved: every packet on /csi/capture, its tag the MAC's last four bytes,
+    its CSI the antennas' at the kept subcarriers (as float32), the channel's centre frequency."""
+    csi = truth()
+    macs = [MAC if p % 3 else bytes.fromhex("020000000007") for p in range(len(csi))]
+    bag, out = robot_bag(tmp_path / "robot", recorded(csi), macs), tmp_path / "robot.mcap"
     setup = tmp_path / "setup.yaml"
-    setup.write_text(f"receiver:\n  antenna_positions_m: {SQUARE_19MM.tolist()}\ntags: [{{id: 1, channel: 155}}]\n")
+    setup.write_text(f"receiver:\n  antenna_positions_m: {SQUARE_19MM.tolist()}\n")
+    result = run_rover("convert", str(bag), "-o", str(out), "--setup", str(setup))
+    assert result.returncode == 0, result.stderr
+    assert "csi: /csi -> /csi/capture" in result.stdout and "wrote 60 messages on /csi/capture" in result.stdout
+    packets = [deserialize(d, "rover_msgs/msg/Csi") for t, _s, d in read_bag(out) if t == "/csi/capture"]
+    assert [p.tag_id for p in packets] == [int.from_bytes(m[-4:], "big") for m in macs]
+    assert {p.tag_id for p in packets} == {7, 0x2C3D4E5F}
+    first = packets[0]
+    assert (first.channel, first.nrx, first.ntx, first.centre_freq_hz) == (CHANNEL, 4, 1, CENTRE_HZ)
+    np.testing.assert_array_equal(first.subcarriers, wiros.KEPT_SUBCARRIERS[80e6])
+    got = np.array([p.csi_real + 1j * p.csi_imag for p in packets]).reshape(len(packets), 234, 4, 1)
+    np.testing.assert_allclose(got, kept(csi), rtol=0, atol=1e-6)
+
+
+def test_rover_convert_of_wiros_csi_it_cannot_use_fails_and_writes_nothing(tmp_path):
+    """Every packet's MAC cut short: all counted, none left, so exit 2 in one line and no dataset;
+    a compensation given for CSI that is not WiROS's is refused."""
+    csi = recorded(truth())[:10]
+    bag, out = robot_bag(tmp_path / "robot", csi, [MAC[:4]] * len(csi)), tmp_path / "robot.mcap"
+    setup = tmp_path / "setup.yaml"
+    setup.write_text(f"receiver:\n  antenna_positions_m: {SQUARE_19MM.tolist()}\n")
     result = run_rover("convert", str(bag), "-o", str(out), "--setup", str(setup))
     assert result.returncode == 2 and not out.exists()
-    assert len(result.stderr.strip().splitlines()) == 1
-    assert "/csi is WiROS's rf_msgs/msg/Wifi" in result.stderr and "rover aoa BAG" in result.stderr
+    assert result.stderr.splitlines() == [
+        f"rover: error: {bag}: /csi: no packet of WiROS's rf_msgs/msg/Wifi left to write (10 messages whose txmac "
+        "is not 6 bytes): nothing written"
+    ]
+    result = run_rover(
+        "convert", str(bag), "-o", str(out), "--setup", str(setup), "--topic", "csi=/imu/data", "--compensation", "x"
+    )
+    assert result.returncode == 2 and not out.exists()
 
 
 @pytest.mark.parametrize(("bw", "chan", "bins", "rotation"), [(40, 151, 128, 1j), (20, 149, 64, 1.0)])

@@ -29,6 +29,7 @@ from rover.geometry import wrap_angle
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.aoa.array import ArrayResponse, array_axis, check_rig_geometry, field_mask, mirror_into_field
+from rover.operators.aoa.interleaved import InterleavedBursts, Packet
 from rover.operators.aoa.jumps import jump_phases
 from rover.operators.aoa.music import MAX_STD_RAD, JointMusic, Peaks, burst_std, check_energy, choose_direct
 from rover.pipeline.params import Checked, Fraction, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
@@ -149,7 +150,15 @@ class Aoa(Operator):
 
     cpu_weight = 3.7
 
-    inputs = {"csi": In("rover_msgs/msg/Csi"), "setup": In("rover_msgs/msg/RigSetup")}
+    inputs = {
+        "csi": In("rover_msgs/msg/Csi", doc="a sweep's CSI: one tag per dwell, a burst each"),
+        "capture": In(
+            "rover_msgs/msg/Csi",
+            required=False,
+            doc="another tool's CSI (a converted WiROS bag): transmitters interleaved, a burst per transmitter",
+        ),
+        "setup": In("rover_msgs/msg/RigSetup"),
+    }
     outputs = {"aoa": Out("rover_msgs/msg/Aoa")}
     Params = AoaParams
 
@@ -158,8 +167,9 @@ class Aoa(Operator):
         self.setup = RigInput()
         self.rig: Rig | None = None
         self.estimators: dict[tuple[int, Plan], JointMusic] = {}
-        self.waiting: list[tuple[Any, int]] = []
-        self.burst: list[tuple[Any, int]] = []
+        self.waiting: list[tuple[str, Any, int]] = []
+        self.burst: list[Packet] = []
+        self.captured = InterleavedBursts(round(self.params.max_burst_s * 1e9), self.params.burst_packets)
         self.collinear = False
         self.axis_rad: float | None = None
         """a collinear array's axis direction (robot frame)"""
@@ -170,12 +180,14 @@ class Aoa(Operator):
         if port == "setup":
             self._configure(msg)
             pending, self.waiting = self.waiting, []
-            for csi, stamp in pending:
-                yield from self._add(csi, stamp)
+            for was, csi, stamp in pending:
+                yield from self._add(csi, stamp) if was == "csi" else self._capture(csi, stamp)
         elif self.rig is None:
-            self.waiting.append((msg, stamp_ns))
-        else:
+            self.waiting.append((port, msg, stamp_ns))
+        elif port == "csi":
             yield from self._add(msg, stamp_ns)
+        else:
+            yield from self._capture(msg, stamp_ns)
 
     def _configure(self, msg: Any) -> None:
         self.rig = self.setup.update(msg)
@@ -216,8 +228,9 @@ class Aoa(Operator):
     def held_since_ns(self) -> float:
         """The first stamp of the CSI held (waiting for the rig, or the burst under way): an AoA is
         stamped at its burst's median packet, so none comes before it."""
-        held = [held[0][1] for held in (self.waiting, self.burst) if held]
-        return min(held, default=math.inf)
+        held = [self.waiting[0][2]] if self.waiting else []
+        held += [self.burst[0][1]] if self.burst else []
+        return min([*held, self.captured.held_since_ns()])
 
     def _add(self, msg: Any, stamp_ns: int):
         if self.burst:
@@ -232,8 +245,23 @@ class Aoa(Operator):
         if len(self.burst) == self.params.burst_packets:
             yield from self._flush()
 
+    def _capture(self, msg: Any, stamp_ns: int):
+        """A packet of another tool's capture: the AoAs of the transmitters' bursts it closes, in stamp
+        order. No candidate per jump combination: the pi jumps are the Intel 5300's, not its chains'."""
+        self._queue_captured(self.captured.add(msg, stamp_ns))
+        yield from self.captured.ready(stamp_ns)
+
+    def _queue_captured(self, bursts: list[list[Packet]]) -> None:
+        for burst in bursts:
+            for emit in self._aoa_of(burst, jumps=False):
+                self.captured.queue(emit.stamp_ns, emit)
+
     def _flush(self):
         burst, self.burst = self.burst, []
+        yield from self._aoa_of(burst, jumps=self.params.jumps)
+
+    def _aoa_of(self, burst: list[Packet], jumps: bool):
+        """The AoA of one burst's packets (none, counted, when they are too few or carry no path)."""
         usable = [(m, s) for m, s in burst if m.nrx == len(self._rig.antenna_positions_m)]
         if len(usable) < len(burst):
             self.drop("packets with another antenna count", len(burst) - len(usable))
@@ -263,7 +291,7 @@ class Aoa(Operator):
         music = self._estimator(msg0.channel, first)
         offsets = self._rig.phase_offsets(msg0.channel) if self.params.calibrate else None
         clean = music.clean(csi, offsets, sto=self.params.remove_sto)
-        candidates = self._candidates(music, clean, msg0.channel)
+        candidates = self._candidates(music, clean, msg0.channel, jumps)
         if not candidates:
             self.drop("bursts too noisy (no path above the noise)")
             return
@@ -291,14 +319,14 @@ class Aoa(Operator):
             stamp,
         )
 
-    def _candidates(self, music: JointMusic, clean: np.ndarray, channel: int) -> list[Candidate]:
+    def _candidates(self, music: JointMusic, clean: np.ndarray, channel: int, jumps: bool) -> list[Candidate]:
         """The burst's direct path under each combination of chain phase jumps (rover.operators.aoa.jumps),
         the distinguishable ones, the no-jump one first: the covariances of all combinations are one
         batch for MUSIC, since undoing a jump only rotates the chains' phases."""
         p = self.params
-        phases = jump_phases(channel, clean.shape[2], p.jumps)
+        phases = jump_phases(channel, clean.shape[2], jumps)
         undo = np.exp(-1j * phases)  # (C, M)
-        if p.jumps and (p.align_packets or phase_jump_step_rad(channel) < math.pi):
+        if jumps and (p.align_packets or phase_jump_step_rad(channel) < math.pi):
             clean = align_packets(clean, undo)
         cov = music.covariance(clean).mean(axis=0)
         along = np.repeat(undo, music.window, axis=1)  # antenna-major, as the covariance's elements
@@ -363,5 +391,7 @@ class Aoa(Operator):
     def on_end(self):
         if self.burst:
             yield from self._flush()
+        self._queue_captured(self.captured.rest())
+        yield from self.captured.ready(math.inf)
         if self.waiting:
             self.drop("packets before any rig description", len(self.waiting))

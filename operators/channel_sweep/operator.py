@@ -74,6 +74,8 @@ class ChannelSweep(Operator):
         rig = self.setup.update(msg)
         self.rig = rig
         p = self.params
+        if rig.excitation_channel is None and p.mode == "label":
+            return  # a bare receiver (another tool's capture): nothing to sweep unless CSI Tool frames come
         excitation = rig.require_excitation("channel_sweep")
         wanted = {t.id: t.channel for t in rig.tags}
         found = conflicts(excitation, wanted, p.channels)
@@ -110,6 +112,8 @@ class ChannelSweep(Operator):
         )
 
     def _label(self, frame: Any, stamp_ns: int):
+        if self.rig is not None and self.rig.excitation_channel is None:
+            self.rig.require_excitation("channel_sweep")
         channel = frame.channel or self.tuned
         tag = self.owner.get(channel)
         if tag is None:

@@ -2,7 +2,8 @@
 `rover record`, `dataset_replay`, `rover info`).
 
 A dataset is one MCAP file that is also a ROS 2 bag: `/csi` (CSI Tool records, each with the channel
-it was received on), `/imu/data`, optional `/odom`, optional ground truth, and MCAP metadata: the rig
+it was received on) or `/csi/capture` (another tool's CSI, decoded), `/imu/data`, optional `/odom`,
+optional ground truth, and MCAP metadata: the rig
 description (`rover.setup`), where the data came from (`rover.provenance`) and, for a live recording,
 what arrived late (`rover.record`).
 """
@@ -22,6 +23,9 @@ TOPICS = dict(DEFAULT_TOPICS)
 """role -> the dataset's topic"""
 TYPES = {"csi": "rover_msgs/msg/CsiFrame", "imu": "sensor_msgs/msg/Imu", "odom": "nav_msgs/msg/Odometry"}
 """role -> the message type of its topic"""
+CAPTURE_TOPIC = "/csi/capture"
+"""another tool's CSI (`rover convert` of a WiROS bag): rover_msgs/msg/Csi, a transmitter per tag_id"""
+CAPTURE_TYPE = "rover_msgs/msg/Csi"
 SETUP_METADATA = "rover.setup"
 PROVENANCE_METADATA = "rover.provenance"
 RECORD_METADATA = "rover.record"

@@ -27,12 +27,8 @@ import numpy as np
 
 from rover.errors import BadInput
 from rover.formats.bearings_csv import Bearings
-from rover.formats.csi_sources.wiros import BEARING_TYPE, messages_of
+from rover.formats.csi_sources.wiros import BEARING_TYPE, MAC_BYTES, messages_of, tag_ids
 from rover.geometry import wrap_angle
-
-MAC_BYTES = 6
-ID_BYTES = 4
-"""the MAC's last bytes that make the tag's id"""
 
 
 def read_wiros_bearings(
@@ -63,7 +59,7 @@ def read_wiros_bearings(
             angles.append(math.atan2(float(np.sin(aoa).mean()), float(np.cos(aoa).mean())))
     if not stamps:
         raise BadInput(f"{path}: {chosen}: no bearing with a transmitter and a finite angle ({len(messages)} messages)")
-    tags = _tag_ids(path, macs)
+    tags = tag_ids(path, macs)
     order = np.argsort(np.array(stamps, dtype=np.int64), kind="stable")
     bearings = Bearings(
         stamp_ns=np.array(stamps, dtype=np.int64)[order],
@@ -72,15 +68,3 @@ def read_wiros_bearings(
         std_rad=np.full(len(order), std_rad),
     )
     return bearings, dropped
-
-
-def _tag_ids(path: Path, macs: list[bytes]) -> np.ndarray:
-    """Each MAC's tag id (its last ID_BYTES bytes); BadInput when two MACs share one."""
-    ids: dict[bytes, int] = {mac: int.from_bytes(mac[-ID_BYTES:], "big") for mac in set(macs)}
-    owner: dict[int, bytes] = {}
-    for mac, tag in sorted(ids.items()):
-        if tag in owner:
-            a, b = (":".join(f"{x:02x}" for x in m) for m in (owner[tag], mac))
-            raise BadInput(f"{path}: transmitters {a} and {b} share their last {ID_BYTES} bytes, the tag id {tag}")
-        owner[tag] = mac
-    return np.array([ids[m] for m in macs], dtype=np.int64)

@@ -35,6 +35,9 @@ from rover.formats.csi_sources.frames import CsiFrames
 from rover.formats.wifi import SUBCARRIER_SPACING_HZ, channel_freq_hz
 
 WIFI_TYPE = "rf_msgs/msg/Wifi"
+MAC_BYTES = 6
+ID_BYTES = 4
+"""the MAC's last bytes that make a transmitter's tag id"""
 BEARING_TYPE = "rf_msgs/msg/Bearing"
 ROS1_MAGIC = b"#ROSBAG V2.0"
 
@@ -163,10 +166,15 @@ def _fields(path: Path, topic: str, msg: Any) -> None:
         raise BadInput(f"{path}: {topic}: its {WIFI_TYPE} has no {', '.join(missing)}: not WiROS's layout")
 
 
-def read(path: str | Path, topic: str | None = None, compensation: str | Path | None = None) -> CsiFrames:
-    """The bag's packets of the first packet's transmitter, channel and shape (the others counted
-    in `dropped`), at the kept subcarriers, compensated when `compensation` (a file or a folder of
-    WiROS's `RX_ID-CHAN.npy`) is given."""
+def read(
+    path: str | Path,
+    topic: str | None = None,
+    compensation: str | Path | None = None,
+    every_transmitter: bool = False,
+) -> CsiFrames:
+    """The bag's packets of the first packet's channel and shape, and of its transmitter unless
+    `every_transmitter` (the others counted in `dropped`), at the kept subcarriers, compensated when
+    `compensation` (a file or a folder of WiROS's `RX_ID-CHAN.npy`) is given."""
     path = Path(path)
     messages, chosen = messages_of(path, topic)
     if not messages:
@@ -183,7 +191,9 @@ def read(path: str | Path, topic: str | None = None, compensation: str | Path | 
             dropped["messages whose CSI does not hold n_sub x n_rows x n_cols values"] += 1
         elif (int(m.n_sub), int(m.n_rows), int(m.n_cols), int(m.bw), int(m.chan)) != shape:
             dropped["messages of another channel, bandwidth or shape than the first's (read one at a time)"] += 1
-        elif bytes(m.txmac) != mac:
+        elif every_transmitter and len(bytes(m.txmac)) != MAC_BYTES:
+            dropped[f"messages whose txmac is not {MAC_BYTES} bytes"] += 1
+        elif not every_transmitter and bytes(m.txmac) != mac:
             dropped["messages of another transmitter than the first's (read one at a time)"] += 1
         else:
             keep.append(m)
@@ -212,7 +222,9 @@ def read(path: str | Path, topic: str | None = None, compensation: str | Path | 
         timestamp_ns=np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in keep], dtype=np.int64),
         rssi_db=np.repeat(rssi[:, None], n_rows, axis=1),
         noise_dbm=np.full(len(keep), np.nan),
-        mac=np.frombuffer(mac.ljust(6, b"\0")[:6], np.uint8)[None, :].repeat(len(keep), axis=0),
+        mac=np.array([np.frombuffer(bytes(m.txmac).ljust(6, b"\0")[:6], np.uint8) for m in keep], np.uint8).reshape(
+            -1, MAC_BYTES
+        ),
         sequence=np.array([int(m.seq_num) for m in keep], dtype=np.int64),
         dropped=dict(dropped),
     )
@@ -253,3 +265,16 @@ def _compensated(where: Path, csi: np.ndarray, rx_ids: np.ndarray, chan: int) ->
         mine = rx_ids == rx
         out[mine] *= comp.reshape(k, n)[None, :, :, None]
     return out
+
+
+def tag_ids(path: Path, macs: list[bytes]) -> np.ndarray:
+    """Each transmitter's tag id: its MAC's last ID_BYTES bytes as an unsigned integer
+    (`02:00:00:00:00:07` is tag 7, the id a truth's tags.csv gives it); BadInput when two MACs share one."""
+    ids: dict[bytes, int] = {mac: int.from_bytes(mac[-ID_BYTES:], "big") for mac in set(macs)}
+    owner: dict[int, bytes] = {}
+    for mac, tag in sorted(ids.items()):
+        if tag in owner:
+            a, b = (":".join(f"{x:02x}" for x in m) for m in (owner[tag], mac))
+            raise BadInput(f"{path}: transmitters {a} and {b} share their last {ID_BYTES} bytes, the tag id {tag}")
+        owner[tag] = mac
+    return np.array([ids[m] for m in macs], dtype=np.int64)
