@@ -154,7 +154,10 @@ def test_an_empty_dataset_is_a_clean_run_with_empty_outputs(tmp_path, simulated)
     out = tmp_path / "out"
     proc = run_rover("run", "--dataset", str(empty), "--output", str(out), timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert f"rover: WARNING: {empty}: no messages on /csi, /imu/data, /odom: the run's outputs are empty" in proc.stderr
+    assert (
+        f"rover: WARNING: {empty}: no messages on /csi, /imu/data, /odom, /csi/capture: the run's outputs are empty"
+        in proc.stderr
+    )
     assert "Traceback" not in proc.stderr
     assert (out / "trajectory.tum").read_text() == (out / "trajectory_live.tum").read_text() == ""
     assert (out / "tags.csv").read_text().splitlines() == [",".join(TAG_COLUMNS)]
