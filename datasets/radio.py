@@ -72,12 +72,14 @@ def backscatter_csi(
     reflection: float,
     direct_attenuation_db: float | np.ndarray = 0.0,
     scatterers: Scatterers | None = None,
+    offsets_hz: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free CSI (N, 30, M) at N robot poses, and the direct-to-multipath power ratio (N,) in dB of the
+    """Noise-free CSI (N, K, M) at N robot poses (K: the subcarriers `offsets_hz` from the channels'
+    centres, the CSI Tool's 30 unless given), and the direct-to-multipath power ratio (N,) in dB of the
     tag-to-robot link: the first hop's paths share one angle, so only the second hop's set the AoA's difficulty.
     The direct path loses `direct_attenuation_db` (a wall between, shadowing: one value, or one per pose)."""
     n = len(robot_xy)
-    offsets = subcarrier_offsets_hz()
+    offsets = subcarrier_offsets_hz() if offsets_hz is None else offsets_hz
     f1 = channel_freq_hz(excitation_channel) + offsets  # first hop, AP -> tag
     f2 = channel_freq_hz(tag_channel) + offsets  # second hop, tag -> robot
     hop1 = paths(ap, tag[None, :], room_m, reflection)
@@ -100,7 +102,7 @@ def backscatter_csi(
     projection = body @ antennas_m.T  # (N, P2, M)
     h1 = (
         hop1.gain[0][:, None] * np.exp(-2j * np.pi * f1[None, :] * hop1.length_m[0][:, None] / SPEED_OF_LIGHT_M_S)
-    ).sum(axis=0)  # (30,)
+    ).sum(axis=0)  # (K,)
     tau2 = (hop2.length_m[:, :, None] - projection) / SPEED_OF_LIGHT_M_S  # (N, P2, M)
     h2 = np.einsum("np,npfm->nfm", g2, np.exp(-2j * np.pi * f2[None, None, :, None] * tau2[:, :, None, :]))
     csi = h1[None, :, None] * h2
@@ -127,15 +129,24 @@ class Impairments:
     """(M,) for all packets, or (N, M) per packet (phase jumps)"""
 
 
-def impair(csi: np.ndarray, imp: Impairments, rng: np.random.Generator) -> np.ndarray:
-    """Apply the receiver's effects and quantize to int8-valued complex CSI (N, 30, M)."""
-    offsets = subcarrier_offsets_hz()
+def impair(
+    csi: np.ndarray,
+    imp: Impairments,
+    rng: np.random.Generator,
+    offsets_hz: np.ndarray | None = None,
+    int8: bool = True,
+) -> np.ndarray:
+    """Apply the receiver's effects to CSI (N, K, M) at the subcarriers `offsets_hz` (the CSI Tool's
+    30 unless given) and, for the Intel 5300 (`int8`), its AGC and quantization to int8 values."""
+    offsets = subcarrier_offsets_hz() if offsets_hz is None else offsets_hz
     phase = -2 * np.pi * offsets[None, :] * imp.sampling_offset_s[:, None] + imp.common_phase[:, None]
     chains = np.exp(1j * np.asarray(imp.chain_offsets_rad))
     out = csi * np.exp(1j * phase)[:, :, None] * (chains[:, None, :] if chains.ndim == 2 else chains[None, None, :])
     power = np.mean(np.abs(out) ** 2, axis=(1, 2))
     sigma = np.sqrt(power / 10 ** (imp.snr_db / 10) / 2)
     out = out + sigma[:, None, None] * (rng.standard_normal(out.shape) + 1j * rng.standard_normal(out.shape))
+    if not int8:
+        return out
     largest = np.maximum(np.abs(out.real), np.abs(out.imag)).max(axis=(1, 2))
     out = out * (imp.peak / np.maximum(largest, 1e-30))[:, None, None]
     return np.clip(np.rint(out.real), -128, 127) + 1j * np.clip(np.rint(out.imag), -128, 127)

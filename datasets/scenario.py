@@ -58,6 +58,12 @@ class SimTag:
 
 @dataclass(frozen=True)
 class Receiver:
+    card: typing.Literal["intel5300", "nexmon"] = "intel5300"
+    """what records the CSI: the Intel 5300 (CSI Tool records on /csi: 2 or 3 chains, 30 subcarriers,
+    int8 after its AGC), or a Broadcom chip patched by nexmon_csi, such as the 4x4 BCM4366c0 of
+    WiROS's router (2-8 antennas, the 20 MHz channel's 50 data subcarriers as WiROS keeps them, as
+    floats, decoded on /csi/capture as `rover convert` writes a WiROS bag). Its chains' phase states
+    are not modelled: the Intel 5300's jump models are refused with it"""
     array: typing.Literal["triangle", "linear", "positions"] = "triangle"
     spacing_wavelengths: PositiveFloat = 0.5
     antenna_positions_m: list[tuple[float, float]] = field(default_factory=list)

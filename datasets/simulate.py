@@ -16,14 +16,15 @@ import yaml
 from rover.datasets.clutter import place_scatterers, shadowing_db
 from rover.datasets.imu_model import imu_samples, odometry_samples
 from rover.datasets.motion import Motion
-from rover.datasets.radio import Impairments, backscatter_csi, impair, true_aoa
+from rover.datasets.radio import Impairments, backscatter_csi, impair, subcarrier_offsets_hz, true_aoa
 from rover.datasets.scenario import Receiver, Scenario
 from rover.datasets.scenario_size import TRUTH_RATE_HZ, check_size
 from rover.errors import BadInput
 from rover.formats import dataset
 from rover.formats.bag import BagWriter, check_output
+from rover.formats.csi_sources.wiros import KEPT_SUBCARRIERS
 from rover.formats.intel5300 import RecordHeader, encode_record
-from rover.formats.wifi import SPEED_OF_LIGHT_M_S, channel_freq_hz, phase_jump_step_rad
+from rover.formats.wifi import SPEED_OF_LIGHT_M_S, SUBCARRIER_SPACING_HZ, channel_freq_hz, phase_jump_step_rad
 from rover.geometry import quaternion_from_yaw, wrap_angle
 from rover.messages import header, make
 
@@ -44,6 +45,10 @@ CLUTTER_STREAM = 16
 """the clutter (scatterers and shadowing) draws from a stream of its own"""
 IMU_STREAM = 17
 """the gyro's warm-up drift and the base's shake draw from a stream of their own"""
+NEXMON_ANTENNAS = (2, 8)
+"""the antennas a Nexmon-patched chip's rig may have (the BCM4366c0 has four receive chains)"""
+NEXMON_SUBCARRIERS = KEPT_SUBCARRIERS[20e6]
+"""the 20 MHz channel's data subcarriers, as WiROS keeps them"""
 JUMP_DRAWS = 4
 """jumps are drawn as 0..3 steps: at 5 GHz (step pi) that is 0 or pi, each equally likely"""
 
@@ -183,6 +188,43 @@ class _World:
         return wrap_angle(yaw - self.heading)
 
 
+def _check_nexmon(rx: Receiver, antennas: int) -> None:
+    """BadInput for a Nexmon rig the simulator does not model: its antenna count, the Intel 5300's jumps."""
+    low, high = NEXMON_ANTENNAS
+    if not low <= antennas <= high:
+        raise BadInput(f"receiver: {antennas} antennas: a Nexmon rig here has {low} to {high}")
+    intel = {
+        "jumps_per_run": rx.jumps_per_run,
+        "jumps_per_retune": rx.jumps_per_retune,
+        "jumps_per_packet": rx.jumps_per_packet,
+        "steps_per_minute": rx.steps_per_minute,
+    }
+    on = [key for key, value in intel.items() if value]
+    if on:
+        raise BadInput(
+            f"receiver.card nexmon: receiver.{', receiver.'.join(on)} model the Intel 5300's chains, not a Nexmon "
+            "chip's: set them to 0 (false)"
+        )
+
+
+def _nexmon_csi(stamp: int, tag: int, channel: int, sequence: int, csi: np.ndarray) -> Any:
+    """A Nexmon rig's packet as `rover convert` writes a WiROS one: decoded CSI (K, M) of one stream."""
+    return make(
+        "rover_msgs/msg/Csi",
+        header=header(stamp, "base_link"),
+        tag_id=tag,
+        channel=channel,
+        bfee_count=sequence % 2**32,
+        nrx=csi.shape[1],
+        ntx=1,
+        noise=NOISE_HEADER_DB,
+        csi_real=np.ascontiguousarray(csi.real, dtype=np.float32).ravel(),
+        csi_imag=np.ascontiguousarray(csi.imag, dtype=np.float32).ravel(),
+        subcarriers=NEXMON_SUBCARRIERS.astype(np.int16),
+        centre_freq_hz=channel_freq_hz(channel),
+    )
+
+
 def simulate(
     scenario: Scenario, seed: int, output: str | Path, command_line: str = "", force: bool = False
 ) -> SimReport:
@@ -196,7 +238,10 @@ def simulate(
     duration = motion.duration_s
     world = _World(scenario.trajectory.start_m, math.radians(scenario.trajectory.heading_deg))
     antennas = antenna_positions(scenario)
-    if len(antennas) not in (2, 3):
+    nexmon = rx.card == "nexmon"
+    if nexmon:
+        _check_nexmon(rx, len(antennas))
+    elif len(antennas) not in (2, 3):
         raise BadInput(
             f"receiver: {len(antennas)} antennas: the Intel 5300 has three receive chains, so 2 or 3 antennas "
             "(records of 2 or 3 chains)"
@@ -227,7 +272,8 @@ def simulate(
     ap = np.array(scenario.access_point.position_m, dtype=np.float64)
     room = (scenario.room.size_m[0], scenario.room.size_m[1])
     heard = np.zeros(len(true_t), dtype=bool)
-    csi = np.zeros((len(true_t), 30, len(antennas)), dtype=np.complex128)
+    offsets_hz = NEXMON_SUBCARRIERS * SUBCARRIER_SPACING_HZ if nexmon else subcarrier_offsets_hz()
+    csi = np.zeros((len(true_t), len(offsets_hz), len(antennas)), dtype=np.complex128)
     clutter_rng = np.random.default_rng([seed, CLUTTER_STREAM])
     path = motion.state(np.arange(0.0, duration, PATH_STEP_S)).xy
     scatterers = place_scatterers(
@@ -257,6 +303,7 @@ def simulate(
             scenario.room.wall_reflection,
             attenuation + shadow,
             scatterers,
+            offsets_hz,
         )
         csi[in_range] = clean
         report.packets_per_tag[tag.id] = int(in_range.sum())
@@ -272,7 +319,7 @@ def simulate(
         rng.uniform(*rx.agc_peak, n),
         true_offsets[None, :] + jumps.phase_rad,
     )
-    quantized = impair(csi[keep], imp, rng)
+    quantized = impair(csi[keep], imp, rng, offsets_hz, int8=not nexmon)
     latency_s = (rx.latency_ms[0] + rng.exponential(rx.latency_ms[1], n)) * 1e-3
     stamps = T0_NS + np.round((true_t[keep] + latency_s) * 1e9).astype(np.int64)
     agc = rng.integers(30, 46, n)
@@ -282,27 +329,30 @@ def simulate(
     clock_offset_us = int(rng.integers(0, 2**32))
     for k, index in enumerate(keep):
         tag = scenario.tags[owner[index]]
-        head = RecordHeader(
-            (clock_offset_us + int(true_t[index] * 1e6)) % 2**32,
-            k % 2**16,
-            (int(rssi[k]),) * 3,
-            NOISE_HEADER_DB,
-            int(agc[k]),
-            int(selection[k]),
-            RATE_N_FLAGS,
-        )
-        bfee = encode_record(head, quantized[k][:, :, None])
         stamp = int(stamps[k])
-        add(
-            stamp,
-            "/csi",
-            make(
-                "rover_msgs/msg/CsiFrame",
-                header=header(stamp, "base_link"),
-                channel=tag.channel,
-                bfee=np.frombuffer(bfee, dtype=np.uint8),
-            ),
-        )
+        if nexmon:
+            add(stamp, dataset.CAPTURE_TOPIC, _nexmon_csi(stamp, tag.id, tag.channel, k, quantized[k]))
+        else:
+            head = RecordHeader(
+                (clock_offset_us + int(true_t[index] * 1e6)) % 2**32,
+                k % 2**16,
+                (int(rssi[k]),) * 3,
+                NOISE_HEADER_DB,
+                int(agc[k]),
+                int(selection[k]),
+                RATE_N_FLAGS,
+            )
+            bfee = encode_record(head, quantized[k][:, :, None])
+            add(
+                stamp,
+                "/csi",
+                make(
+                    "rover_msgs/msg/CsiFrame",
+                    header=header(stamp, "base_link"),
+                    channel=tag.channel,
+                    bfee=np.frombuffer(bfee, dtype=np.uint8),
+                ),
+            )
         angle = true_aoa(np.array(tag.position_m), state.xy[index : index + 1], state.yaw[index : index + 1])[0]
         add(
             stamp,

@@ -1,6 +1,7 @@
 """pipelines/bearings.yaml end to end: Rover's map from another front end's bearings (a CSV) and the
-robot's IMU and odometry, no CSI: here the bearings are those Rover's own AoA gave on the same lap,
-taken as another front end without chain phase jumps would give them (each burst's no-jump angle)."""
+robot's IMU and odometry, no CSI: here the bearings are those of conftest's lap run through CSI,
+each burst's candidate the SLAM chose (what another front end that resolves the chains' phase jumps
+would give), one bearing a burst."""
 
 from __future__ import annotations
 
@@ -8,40 +9,42 @@ import json
 import math
 
 import pytest
-from helpers import LAP, ROOT, read_bag, run_rover
+from helpers import ROOT, read_bag, run_rover
 
 from rover.messages import deserialize
 
 
 @pytest.mark.slow
-def test_the_slam_runs_from_a_csv_of_bearings_and_localizes_what_the_csi_run_did(simulated, tmp_path):
+def test_the_slam_runs_from_a_csv_of_bearings_and_localizes_what_the_csi_run_did(lap_runs, tmp_path):
     """Every tag the run through CSI localized is localized from the bearings alone; the robot and the
     tags stay within the run's figures' order (under 10 cm and 50 cm), at most 1% of the published
     estimates beyond 3 sigma (the integrity goal, issue 40), and the bearings file is what the SLAM
     received (one bearing a burst, none dropped)."""
-    dataset = simulated(*LAP, "receiver.jumps_per_run=false")  # the chains on their calibration: no-jump angles hold
-    through_csi = tmp_path / "csi"
-    run = run_rover("run", str(ROOT / "pipeline.yaml"), "--dataset", str(dataset), "--output", str(through_csi))
-    assert run.returncode == 0, run.stderr
-    rows = [
-        deserialize(d, "rover_msgs/msg/Aoa") for t, _s, d in read_bag(through_csi / "results.mcap") if t == "/rover/aoa"
+    through_csi = lap_runs["with"]
+    assert through_csi.status == 0, through_csi.stderr
+    bursts = [
+        deserialize(d, "rover_msgs/msg/Aoa")
+        for t, _s, d in read_bag(through_csi.output / "results.mcap")
+        if t == "/rover/bearings"
     ]
+    rows = [(a, a.candidate_angles_rad[a.chosen], a.candidate_stds_rad[a.chosen]) for a in bursts if a.chosen >= 0]
+    assert len(rows) > 0.5 * len(bursts)
     csv = tmp_path / "bearings.csv"
     csv.write_text(
         "time_s,tag,angle_deg,std_deg\n"
         + "".join(
-            f"{a.header.stamp.sec + a.header.stamp.nanosec * 1e-9:.9f},{a.tag_id},{math.degrees(a.angle_rad):.9f},"
-            f"{math.degrees(a.std_rad):.9f}\n"
-            for a in rows
+            f"{a.header.stamp.sec + a.header.stamp.nanosec * 1e-9:.9f},{a.tag_id},{math.degrees(angle):.9f},"
+            f"{math.degrees(std):.9f}\n"
+            for a, angle, std in rows
         )
     )
     from_bearings = tmp_path / "bearings"
     run = run_rover(
-        "run", str(ROOT / "pipelines" / "bearings.yaml"), "--dataset", str(dataset), "--set", f"bearings={csv}",
-        "--output", str(from_bearings),
+        "run", str(ROOT / "pipelines" / "bearings.yaml"), "--dataset", str(through_csi.dataset),
+        "--set", f"bearings={csv}", "--output", str(from_bearings),
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
-    before = json.loads((through_csi / "metrics.json").read_text())
+    before = json.loads((through_csi.output / "metrics.json").read_text())
     after = json.loads((from_bearings / "metrics.json").read_text())
     localized = {t for t, e in before["tags"].items() if e["localized"]}
     assert localized and {t for t, e in after["tags"].items() if e["localized"]} >= localized

@@ -18,8 +18,8 @@ from rover.testing import run_operator
 MS = 1_000_000
 
 
-def packet(tag: int) -> SimpleNamespace:
-    return SimpleNamespace(tag_id=tag)
+def packet(tag: int, channel: int = CHANNEL) -> SimpleNamespace:
+    return SimpleNamespace(tag_id=tag, channel=channel)
 
 
 def test_each_transmitter_closes_its_own_burst_by_time_gap_or_count():
@@ -36,6 +36,9 @@ def test_each_transmitter_closes_its_own_burst_by_time_gap_or_count():
         assert bursts.add(packet(1), t * MS) == []
     (timed_out,) = bursts.add(packet(1), 501 * MS)  # more than 500 ms after the burst's first
     assert len(timed_out) == 5 and [s for _m, s in bursts.open[1]] == [501 * MS]
+    # a receiver that sweeps: a packet on another channel ends the dwell's burst
+    (swept,) = bursts.add(packet(2, CHANNEL + 4), 510 * MS)
+    assert [s for _m, s in swept] == [501 * MS] and set(bursts.open) == {2}
 
 
 def test_results_leave_in_stamp_order_once_no_open_burst_can_precede_them():

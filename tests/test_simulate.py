@@ -20,7 +20,9 @@ from rover.formats.bag import read_metadata
 from rover.formats.intel5300 import RecordHeader, decode_bfee, encode_record
 from rover.formats.wifi import SPEED_OF_LIGHT_M_S, phase_jump_step_rad, subcarrier_freqs_hz
 from rover.geometry import wrap_angle, yaw_from_quaternion
-from rover.messages import deserialize
+from rover.messages import deserialize, make
+from rover.operators.aoa.operator import Aoa, AoaParams
+from rover.testing import run_operator
 
 SHORT = {"trajectory.laps": "1"}
 
@@ -440,3 +442,45 @@ def test_a_pair_of_antennas_records_two_chains_and_looks_all_around(tmp_path):
     with pytest.raises(BadInput, match="4 antennas: the Intel 5300 has three receive chains, so 2 or 3"):
         simulate(load_scenario("paper", {**TINY, **four}), 1, tmp_path / "four.mcap")
     assert not (tmp_path / "four.mcap").exists()
+
+
+SQUARE = "[[0, 0], [0.019, 0], [0.019, 0.019], [0, 0.019]]"
+"""WiROS's 19 mm square of four antennas"""
+NEXMON = {
+    "receiver.card": "nexmon",
+    "receiver.array": "positions",
+    "receiver.antenna_positions_m": SQUARE,
+    "receiver.phase_offsets_rad": "[0, 0.9, -1.7, 0.4]",
+    "receiver.jumps_per_run": "false",
+}
+
+
+def test_a_nexmon_rig_writes_its_four_chains_decoded_on_the_capture_topic(tmp_path):
+    """Each packet is Rover's Csi on /csi/capture (no CSI Tool record): four chains, the 20 MHz
+    channel's 50 data subcarriers at its tag's channel, as floats; its angle is the truth's within
+    the noise. The Intel 5300's jump models are refused with it, naming them, and so are 9 antennas."""
+    path = tmp_path / "nexmon.mcap"
+    simulate(load_scenario("paper", {**TINY, **NEXMON}), 1, path)
+    messages = read_bag(path)
+    assert not [t for t, _s, _d in messages if t == "/csi"]
+    packets = [deserialize(d, "rover_msgs/msg/Csi") for t, _s, d in messages if t == "/csi/capture"]
+    truth = [deserialize(d, "rover_msgs/msg/Aoa") for t, _s, d in messages if t == "/groundtruth/aoa"]
+    assert packets and len(packets) == len(truth)
+    first = packets[0]
+    assert (first.nrx, first.ntx, len(first.subcarriers), len(first.csi_real)) == (4, 1, 50, 200)
+    assert {(p.channel, p.centre_freq_hz) for p in packets} <= {(c, 5e6 * c + 5e9) for c in (149, 153, 157, 161)}
+    assert all(p.tag_id == t.tag_id for p, t in zip(packets, truth, strict=True))
+    setup = make("rover_msgs/msg/RigSetup", setup_yaml=read_metadata(path)["rover.setup"]["yaml"])
+    aoas = [e.msg for e in run_operator(Aoa(AoaParams(burst_packets=20)), {"setup": [setup], "capture": packets})]
+    stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
+    true_at = {(t.tag_id, stamp(t)): t.angle_rad for t in truth}
+    los = [a for a in aoas if a.tag_id != 4]  # tag 4 is the paper room's NLOS tag
+    errors = [abs(math.degrees(wrap_angle(a.angle_rad - true_at[a.tag_id, stamp(a)]))) for a in los]
+    assert len(errors) > 20 and np.median(errors) < 10, errors  # a wrong convention is tens of degrees off
+    with pytest.raises(BadInput, match=r"receiver.card nexmon: receiver.jumps_per_run model the Intel 5300's"):
+        simulate(load_scenario("paper", {**TINY, **NEXMON, "receiver.jumps_per_run": "true"}), 1, tmp_path / "j.mcap")
+    nine = {**NEXMON, "receiver.antenna_positions_m": str([[0.01 * k, 0] for k in range(9)])}
+    nine["receiver.phase_offsets_rad"] = str([0] * 9)
+    with pytest.raises(BadInput, match="9 antennas: a Nexmon rig here has 2 to 8"):
+        simulate(load_scenario("paper", {**TINY, **nine}), 1, tmp_path / "nine.mcap")
+    assert not (tmp_path / "j.mcap").exists() and not (tmp_path / "nine.mcap").exists()

@@ -4,7 +4,8 @@ burst, closed by time or count, and the bursts' AoAs leave in stamp order.
 
 A sweep's bursts end when the tag changes (one tag per dwell); here a transmitter's burst ends when
 a packet arrives more than `max_burst_ns` after its first, or half that after its last (it fell
-silent), or once it holds `burst_packets` packets. An AoA is stamped at its burst's median packet,
+silent), or on another channel (a receiver that sweeps the tags' channels: its dwell is over), or
+once it holds `burst_packets` packets. An AoA is stamped at its burst's median packet,
 so one burst's may come before another's that closed earlier: the AoAs wait in a queue until no
 open burst could still give an earlier one.
 """
@@ -35,7 +36,9 @@ class InterleavedBursts:
         closed = [
             tag
             for tag, burst in self.open.items()
-            if stamp_ns - burst[0][1] > self.max_burst_ns or stamp_ns - burst[-1][1] > self.max_burst_ns / 2
+            if stamp_ns - burst[0][1] > self.max_burst_ns
+            or stamp_ns - burst[-1][1] > self.max_burst_ns / 2
+            or burst[-1][0].channel != msg.channel
         ]
         done = [self.open.pop(tag) for tag in closed]
         burst = self.open.setdefault(msg.tag_id, [])
