@@ -226,8 +226,9 @@ class Aoa(Operator):
         return self.estimators[channel, plan]
 
     def held_since_ns(self) -> float:
-        """The first stamp of the CSI held (waiting for the rig, or the burst under way): an AoA is
-        stamped at its burst's median packet, so none comes before it."""
+        """The first stamp of the CSI held (waiting for the rig, the burst under way, a capture's open
+        bursts and the AoAs queued behind them): an AoA is stamped at its burst's median packet, so
+        none comes before it."""
         held = [self.waiting[0][2]] if self.waiting else []
         held += [self.burst[0][1]] if self.burst else []
         return min([*held, self.captured.held_since_ns()])
