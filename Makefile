@@ -49,10 +49,12 @@ $(INTEROP)/.installed: tests/ros2_interop/requirements.txt
 	touch $@
 
 # The suite on both cores, then the multi-host tests two at a time (each lab has its own namespaces;
-# a lab's hosts mostly wait on each other, so two labs share the cores without slowing either much).
+# a lab's hosts mostly wait on each other, so two labs share the cores without slowing either much),
+# then the live session alone: it checks real-time order, which another lab's run would starve.
 test: lint netns-tools $(INTEROP)/.installed
 	$(BIN)/python -m pytest -q -n 2 -m "not netns" --durations=15
-	$(BIN)/python -m pytest -q -n 2 -m netns --durations=5
+	$(BIN)/python -m pytest -q -n 2 -m "netns and not live" --durations=5
+	$(BIN)/python -m pytest -q -m live
 
 # The unit and contract tests only, on both cores: what to run while iterating (docs/contributing.md).
 test-fast: $(STAMP) $(INTEROP)/.installed

@@ -13,7 +13,8 @@ from netns import require_root
 
 from rover.formats.bag import BagReader
 
-pytestmark = [pytest.mark.netns, pytest.mark.slow]  # builds network namespaces (tests/netns.py)
+# builds network namespaces (tests/netns.py); checks real-time order, so `make test` runs it alone
+pytestmark = [pytest.mark.netns, pytest.mark.slow, pytest.mark.live]
 
 LIVE_S = 30.0
 """real time the session runs once every sensor streams"""
