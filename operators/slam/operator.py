@@ -40,7 +40,9 @@ BATCH_PASSES = 3
 """convex passes and Gauss-Newton steps at least, in batch mode's single solve"""
 SEARCH_STEPS_PER_EPOCH = 4
 """tag search steps after each epoch's update at most (a step scores a chunk of hypotheses or
-refines one, about a millisecond): bounds the work per epoch however many tags wait, however long"""
+refines one: a chunk of 65,536 residuals took 4-6 ms alone on the project's machine, four steps up to
+24 ms, and 20-50 ms on a live three-host laptop): bounds the work per epoch however many tags wait,
+however long. The pose goes out before them, but they delay the next epoch's"""
 
 
 @dataclass(frozen=True)
