@@ -222,9 +222,9 @@ def read(
         timestamp_ns=np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in keep], dtype=np.int64),
         rssi_db=np.repeat(rssi[:, None], n_rows, axis=1),
         noise_dbm=np.full(len(keep), np.nan),
-        mac=np.array([np.frombuffer(bytes(m.txmac).ljust(6, b"\0")[:6], np.uint8) for m in keep], np.uint8).reshape(
-            -1, MAC_BYTES
-        ),
+        mac=np.array(
+            [np.frombuffer(bytes(m.txmac).ljust(MAC_BYTES, b"\0")[:MAC_BYTES], np.uint8) for m in keep], np.uint8
+        ).reshape(-1, MAC_BYTES),
         sequence=np.array([int(m.seq_num) for m in keep], dtype=np.int64),
         dropped=dict(dropped),
     )
