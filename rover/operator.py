@@ -245,11 +245,19 @@ class Operator:
         inputs they come from."""
         return None
 
+    def has_idle_work(self) -> bool:
+        """Whether the operator has work it can do ahead, while nothing waits (`on_idle`), that it
+        would otherwise do in a later handler: the SLAM's tag search steps. Done while the operator
+        would wait, it does not hold up the next input (default: none)."""
+        return False
+
     def on_idle(self) -> Iterable[Emit]:
-        """Called while the operator holds inputs (`held_since_ns`) and has nothing more to handle:
-        it may send what it holds, as `csi_decode` decodes its batch (live, frames trickle in; a
-        batch that waited for the next dwell would hold every AoA and pose behind it). Only for
-        holding that is for speed: what it sends must not depend on when it is called."""
+        """Called while the operator holds inputs (`held_since_ns`) or has work to do ahead
+        (`has_idle_work`), and has nothing more to handle: it may send what it holds, as
+        `csi_decode` decodes its batch (live, frames trickle in; a batch that waited for the next
+        dwell would hold every AoA and pose behind it), or do a bounded part of that work (it is
+        called again while nothing waits). Only for what is for speed: what it sends must not
+        depend on when it is called."""
         return ()
 
     def on_end(self) -> Iterable[Emit]:

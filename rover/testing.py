@@ -19,10 +19,12 @@ from rover.operator import Emit, In, Operator
 from rover.runtime.scheduler import EventTimeMerger
 
 
-def run_operator(op: Operator, inputs: Mapping[str, Sequence[Any]]) -> list[Emit]:
+def run_operator(op: Operator, inputs: Mapping[str, Sequence[Any]], idle: bool = False) -> list[Emit]:
     """Deliver the messages of each input port to `op.on_input` in event-time order, then call `op.on_end`;
     return what it emitted, in order and as it emitted it. Only the ports given are wired, as in a
-    pipeline that leaves the others unconnected; the operator's drops stay in `op.drops`."""
+    pipeline that leaves the others unconnected; the operator's drops stay in `op.drops`. With
+    `idle`, after each message `op.on_idle` is called for as long as it has work to do ahead
+    (`has_idle_work`), as the runtime does while inputs come slower than they are handled."""
     ports = type(op).declared_ports(getattr(op, "params", None))
     specs: dict[str, In] = {}
     for port in inputs:
@@ -38,6 +40,8 @@ def run_operator(op: Operator, inputs: Mapping[str, Sequence[Any]]) -> list[Emit
     out: list[Emit] = []
     for port, stamp, msg in merger.pop_ready():
         out.extend(op.on_input(port, msg, stamp) or ())
+        while idle and op.has_idle_work():
+            out.extend(op.on_idle() or ())
     out.extend(op.on_end() or ())
     return out
 

@@ -292,6 +292,24 @@ operators:
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 9
 
 
+def test_an_operator_does_its_work_ahead_while_no_input_waits(tmp_path):
+    """The SLAM computes its tag search's steps ahead while it waits for an input: the runtime calls
+    `on_idle` for as long as the operator has such work (`has_idle_work`) and none waits (the
+    ticker sends its next message only once the work is done: in 10 s, or it counts a drop)."""
+    pipeline = tmp_path / "ahead.yaml"
+    pipeline.write_text("""\
+name: ahead
+workers: 1
+operators:
+  tick:   {uses: toyops.GatedTicker, params: {rate_hz: 1000, count: 5}}
+  ahead:  {uses: toyops.AheadWork, inputs: {imu: tick/imu}}
+  record: {uses: recorder, inputs: {imu: ahead/imu}, params: {out: out}}
+""")
+    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=120)
+    assert proc.returncode == 0 and "dropped" not in proc.stderr, proc.stderr
+    assert len(read_bag(tmp_path / "out" / "results.mcap")) == 5
+
+
 def test_the_profile_says_where_each_operators_time_went(tmp_path):
     """A sink that sleeps 20 ms per message shows it as handler time, the replay's sends wait on its
     full inbox, and a sink that takes 0.1 s to close shows that as its close."""

@@ -12,7 +12,7 @@ from slam_scenes import EXACT_COVARIANCE, angles, edge, scene, true_angle
 from test_jumps import burst_candidates
 
 from rover.geometry import quaternion_from_yaw
-from rover.messages import header, make
+from rover.messages import header, make, serialize
 from rover.operators.slam.operator import Slam, SlamParams
 from rover.operators.slam.tag_status import TagState
 from rover.testing import run_operator
@@ -194,10 +194,9 @@ def test_no_odometry_at_all_and_bad_angles_are_counted(caplog):
     assert op.drops == {"AoAs with a non-finite angle or std": 1}
 
 
-def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
-    """A tag whose bearings carry jump candidates: the operator searches for it after the epoch's
-    pose is out (one search per epoch at most, timed as `slam.search`), and finds it (20 s: its
-    first jackknife sets its covariance, so a second one confirms it before it is published)."""
+def searched_tag_inputs() -> dict[str, list[Any]]:
+    """20 s of one tag at (3, 2) whose bearings carry jump candidates (each burst's four
+    combinations in a random order), and the odometry."""
     sc = scene(seconds=20.0, tags=((3.0, 2.0),))
     rng = np.random.default_rng(3)
     std = math.radians(3.0)
@@ -214,14 +213,20 @@ def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
                 angle_rad=float(candidates[0]),
                 std_rad=std,
                 packets=7,
-                candidate_angles_rad=candidates.tolist(),
-                candidate_stds_rad=[std] * 4,
-                candidate_powers=[0.25] * 4,
-                candidate_jumps=jumps[0].tolist(),
+                candidate_angles_rad=candidates.astype(np.float64),
+                candidate_stds_rad=np.full(4, std),
+                candidate_powers=np.full(4, 0.25),
+                candidate_jumps=jumps[0].astype(np.uint16),
             )
         )
-    odometry = [preintegration(sc, k) for k in range(1, len(sc.t))]
-    out = run_operator(Slam(SlamParams(window=30, accel_bias=False)), {"aoa": aoas, "odometry": odometry})
+    return {"aoa": aoas, "odometry": [preintegration(sc, k) for k in range(1, len(sc.t))]}
+
+
+def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
+    """A tag whose bearings carry jump candidates: the operator searches for it after the epoch's
+    pose is out (one search per epoch at most, timed as `slam.search`), and finds it (20 s: its
+    first jackknife sets its covariance, so a second one confirms it before it is published)."""
+    out = run_operator(Slam(SlamParams(window=30, accel_bias=False)), searched_tag_inputs())
     searches = [(i, e) for i, e in enumerate(out) if e.port == "timing" and e.msg.stage == "slam.search"]
     assert searches and all(e.msg.wall_s > 0 for _, e in searches)
     pose_at = {e.stamp_ns: i for i, e in enumerate(out) if e.port == "pose"}
@@ -232,6 +237,30 @@ def test_a_tag_search_runs_after_the_epochs_pose_and_is_timed():
     assert math.hypot(final[0].position.x - 3.0, final[0].position.y - 2.0) < 0.2
     states = [m.state for m in statuses_agree_with_tags(out)[1]]
     assert states[0] == TagState.HEARD and states[-1] == TagState.LOCALIZED and TagState.JUDGING in states
+
+
+class IdleCounted(Slam):
+    idle_calls = 0
+
+    def on_idle(self):
+        self.idle_calls += 1
+        return super().on_idle()
+
+
+def test_search_steps_computed_ahead_in_idle_time_change_no_output():
+    """The runtime calls `on_idle` while no input waits: the operator computes its search's steps
+    ahead there, and the epochs that take them send what they would have sent without it."""
+    inputs = searched_tag_inputs()
+    inline = run_operator(Slam(SlamParams(window=30, accel_bias=False)), inputs)
+    idle = IdleCounted(SlamParams(window=30, accel_bias=False))
+    ahead = run_operator(idle, inputs, idle=True)
+    assert idle.idle_calls > 10 and not idle.has_idle_work()
+
+    def sent(out):
+        return [(e.port, e.stamp_ns, serialize(e.msg)) for e in out if e.port != "timing"]
+
+    assert sent(ahead) == sent(inline)
+    assert [e.msg.tags[0].observable for e in ahead if e.port == "tags"][-1]
 
 
 def test_paths_before_the_end_are_thinned_to_their_bound_and_the_last_is_whole():

@@ -167,6 +167,49 @@ class Ticker(Source):
             stop.wait(period)
 
 
+AHEAD_DONE = threading.Event()
+"""set by AheadWork when its work ahead is done: GatedTicker then sends its next message"""
+AHEAD_UNITS = 3
+"""units of work ahead each AheadWork input makes"""
+
+
+class GatedTicker(Ticker):
+    """Sends its next message only once AheadWork did all its work ahead (one process), so that the
+    operator's inbox is empty while the work remains: the runtime must call `on_idle` until it is done."""
+
+    def run(self, stop: threading.Event):
+        for item in super().run(stop):
+            if isinstance(item, Emit):
+                AHEAD_DONE.clear()
+            yield item
+            if isinstance(item, Watermark) and not AHEAD_DONE.wait(10.0):
+                self.drop("messages whose work ahead was not done in 10 s")
+
+
+class AheadWork(Operator):
+    """Passes messages on; each makes AHEAD_UNITS units of work it does ahead, one per `on_idle`."""
+
+    inputs = {"imu": In("sensor_msgs/msg/Imu")}
+    outputs = {"imu": Out("sensor_msgs/msg/Imu")}
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        self.units = 0
+
+    def has_idle_work(self) -> bool:
+        return self.units > 0
+
+    def on_idle(self):
+        self.units -= 1
+        if self.units == 0:
+            AHEAD_DONE.set()
+        return ()
+
+    def on_input(self, port, msg, stamp_ns):
+        self.units += AHEAD_UNITS
+        yield Emit("imu", msg)
+
+
 class Pairs(Operator):
     """Sends each message once the next one arrived, as the AoA closes a burst when the next
     dwell's frames come; says what it holds (`held_since_ns`)."""

@@ -39,10 +39,11 @@ COVARIANCE_FLOOR = 1e-12
 BATCH_PASSES = 3
 """convex passes and Gauss-Newton steps at least, in batch mode's single solve"""
 SEARCH_STEPS_PER_EPOCH = 4
-"""tag search steps after each epoch's update at most (a step scores a chunk of hypotheses or
-refines one: a chunk of 65,536 residuals took 4-6 ms alone on the project's machine, four steps up to
-24 ms, and 20-50 ms on a live three-host laptop): bounds the work per epoch however many tags wait,
-however long. The pose goes out before them, but they delay the next epoch's"""
+"""tag search steps each epoch takes after its update at most (a step scores a chunk of hypotheses
+or refines one: a chunk of 65,536 residuals took 4-6 ms alone on the project's machine, four steps
+up to 24 ms, and 20-50 ms on a live three-host laptop): a search starts and ends at the same epochs
+on any machine, whatever its work. The steps are computed ahead while the operator waits for its
+next input (`on_idle`, steps_ahead.py), so an epoch does only those not done yet"""
 
 
 @dataclass(frozen=True)
@@ -194,6 +195,17 @@ class Slam(Operator):
             return
         yield from self._odometry(msg, stamp_ns)
 
+    def has_idle_work(self) -> bool:
+        searching = self.window.finder.searching
+        return searching is not None and searching.steps.pending
+
+    def on_idle(self):
+        """Compute a step of the tag search under way ahead of the epoch that takes it (StepsAhead)."""
+        searching = self.window.finder.searching
+        if searching is not None:
+            searching.steps.ahead()
+        return ()
+
     def _bearing(self, msg: Any, stamp: int) -> None:
         if not len(msg.candidate_angles_rad) == len(msg.candidate_stds_rad) == len(msg.candidate_jumps):
             self.drop("AoAs whose candidate arrays differ in length")
@@ -266,7 +278,8 @@ class Slam(Operator):
         yield from self._find_tags(stamp)
 
     def _find_tags(self, stamp: int):
-        """A few tag search steps after this epoch's outputs are out (its pose need not wait for them)."""
+        """A few tag search steps after this epoch's outputs are out (its pose need not wait for them);
+        its timing is of those not computed ahead in idle time."""
         started = time.perf_counter()
         if self.window.find_tags(steps=SEARCH_STEPS_PER_EPOCH):
             wall_s = time.perf_counter() - started

@@ -329,7 +329,8 @@ class SlidingWindow:
         is in use from the next update (TagFinder).
 
         Done between updates, not in them, a few steps at a time (tag_search.search_steps): a
-        whole search costs several updates' time, and no pose need wait for it."""
+        whole search costs several updates' time, and no pose need wait for it. Steps computed
+        ahead (StepsAhead.ahead, in the operator's idle time) are taken here at no cost."""
         finder = self.finder
         taken = 0
         while steps is None or taken < steps:

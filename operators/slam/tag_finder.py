@@ -4,13 +4,13 @@ The search itself is `tag_search` (pure functions over bearings)."""
 
 from __future__ import annotations
 
-from collections.abc import Generator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from rover.operators.slam.epoch import padded_rows
 from rover.operators.slam.search_scores import Bearings
+from rover.operators.slam.steps_ahead import StepsAhead
 from rover.operators.slam.tag_search import Found, SearchSettings, search_steps
 
 SEARCH_HISTORY = 400
@@ -25,12 +25,12 @@ positions are taken as known, which they are not quite)"""
 @dataclass
 class Search:
     """A tag search under way: the tag slot, what it searches (the bearings and their stamps, for
-    putting the tag in use), and its remaining steps."""
+    putting the tag in use), and its remaining steps (some perhaps computed ahead: StepsAhead)."""
 
     tag: int
     stamps: np.ndarray
     bearings: Bearings
-    steps: Generator[None, None, Found | None]
+    steps: StepsAhead[Found | None]
 
 
 @dataclass
@@ -102,7 +102,7 @@ class TagFinder:
             angles, stds, jumps = padded(0, np.nan), padded(1, 1.0), padded(2, -1).astype(int)
             stamps = np.array([st for st, _, _ in rows])
             bearings = Bearings((stamps - stamps[0]) * 1e-9, robot, angles, stds, jumps)
-            return Search(t, stamps, bearings, search_steps(bearings, self.search))
+            return Search(t, stamps, bearings, StepsAhead(search_steps(bearings, self.search)))
         return None
 
     def settle(self, tag_id: int, run: Search, found: Found) -> None:

@@ -419,10 +419,10 @@ class OperatorTask(Task):
             try:
                 port, delivery = self.inbox.get(timeout=0.0)
             except queue.Empty:
-                self.idle()
+                more = self.idle()
                 waiting = time.perf_counter_ns()
                 try:
-                    port, delivery = self.inbox.get(timeout=POLL_S)
+                    port, delivery = self.inbox.get(timeout=0.0 if more else POLL_S)
                 except queue.Empty:
                     continue
                 finally:
@@ -445,15 +445,18 @@ class OperatorTask(Task):
         held = self.op.held_since_ns()
         self.advance(self.reached_ns - self.op.lateness_s * 1e9 if held is None else min(self.reached_ns, held))
 
-    def idle(self) -> None:
-        """Nothing to handle: an operator holding inputs may send them (`on_idle`), and promises that
-        moved on since their port's last message go out on their own."""
+    def idle(self) -> bool:
+        """Nothing to handle: an operator holding inputs may send them, or do a part of its work
+        ahead (`on_idle`), and promises that moved on since their port's last message go out on
+        their own. Returns whether the operator has more work to do ahead (the caller then looks
+        for an input again at once, instead of waiting for one)."""
         held = self.op.held_since_ns()
-        if held is not None and held != INF:
+        if (held is not None and held != INF) or self.op.has_idle_work():
             self.handle(self.op.on_idle, self.last_stamp())
             self.promise()
         for out in self.outputs.values():
             out.idle()
+        return self.op.has_idle_work()
 
     def last_stamp(self) -> int:
         """The latest stamp sent on any output, for what `on_end` emits without one (0 before any)."""
