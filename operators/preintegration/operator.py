@@ -23,6 +23,7 @@ from rover.geometry import exp_so3_batch, quaternion_from_matrix, rpy_matrix, sk
 from rover.messages import header, make
 from rover.operator import Emit, In, Operator, Out
 from rover.operators.preintegration.gyro_bias import BiasModel, GyroBias
+from rover.operators.preintegration.noise_floor import NoiseFloor
 from rover.operators.preintegration.scan import prefix_products, propagated
 from rover.pipeline.params import Checked, NonNegativeFloat, PositiveFloat
 
@@ -32,9 +33,11 @@ log = logging.getLogger("rover.preintegration")
 @dataclass(frozen=True)
 class PreintegrationParams(Checked):
     gyro_noise_rad_s_rthz: PositiveFloat = math.radians(0.005)
-    """gyro white-noise density (MicroStrain 3DM-GX4-45 datasheet)"""
+    """gyro white-noise density (MicroStrain 3DM-GX4-45 datasheet): the least the odometry's
+    covariance uses; the noise its samples show while the robot drives counts when larger
+    (noise_floor.py: a real Jackal's gyro read 10-50 times its datasheet)"""
     accel_noise_m_s2_rthz: PositiveFloat = 100e-6 * 9.80665
-    """accelerometer white-noise density (same datasheet)"""
+    """accelerometer white-noise density (same datasheet), the least used, as the gyro's"""
     stationary_s: NonNegativeFloat = 1.0
     """how much still time at the start is used for the gyro bias and gravity"""
     still_gyro_rad_s: PositiveFloat = 0.02
@@ -152,6 +155,8 @@ class Preintegration(Operator):
         self.turns = 0
         self.tracker: GyroBias | None = None
         """the gyro bias re-estimated on quiet spans (None: no still start to measure the quiet by)"""
+        self.noise: NoiseFloor | None = None
+        """the IMU's white noise measured on its latest samples (noise_floor.py), once levelled"""
 
     def on_input(self, port: str, msg: Any, stamp_ns: int):
         if port == "setup":
@@ -216,6 +221,8 @@ class Preintegration(Operator):
         self.gravity = np.array([0.0, 0.0, -float(np.linalg.norm(mean_f))])
         dts = np.diff([s[0] for s in self.still]) / 1e9
         self.nominal_dt = float(np.median(dts)) if len(dts) else None
+        if self.nominal_dt:
+            self.noise = NoiseFloor.for_rate(self.level, self.nominal_dt)
         if not moving:
             self._track(gyro, stamp)
         self.epoch_attitude = self.attitude.copy()
@@ -254,11 +261,16 @@ class Preintegration(Operator):
             return
         starts = np.array([i[0] for i in intervals], dtype=np.int64)
         ends = np.array([i[3] for i in intervals], dtype=np.int64)
-        w = np.array([i[1] for i in intervals]) - (self.bias if self.tracker is None else self.tracker.at(starts))
+        raw = np.array([i[1] for i in intervals])
+        f = np.array([i[2] for i in intervals])
+        densities = (self.params.gyro_noise_rad_s_rthz, self.params.accel_noise_m_s2_rthz)
+        if self.noise is not None and self.nominal_dt:
+            self.noise.add(raw, f)
+            densities = self.noise.densities(*densities, self.nominal_dt)
+        w = raw - (self.bias if self.tracker is None else self.tracker.at(starts))
         if self.params.planar:  # only the rate about the levelled vertical (see PreintegrationParams.planar)
             up = self.level[2]
             w = np.outer(w @ up, up)
-        f = np.array([i[2] for i in intervals])
         dt = (ends - starts) / 1e9
         if self.nominal_dt:
             gaps = int(np.sum(dt > self.params.gap_factor * self.nominal_dt))
@@ -283,7 +295,7 @@ class Preintegration(Operator):
             jv_before * dt[:, None, None] + 0.5 * dj * dt[:, None, None], axis=0
         )
         inc.bias_velocity = inc.bias_velocity + dj.sum(axis=0)
-        inc.covariance = self._propagate(inc.covariance, steps, rotations, f, dt)
+        inc.covariance = self._propagate(inc.covariance, steps, rotations, f, dt, *densities)
         inc.rotation = current
         inc.dt += float(dt.sum())
         inc.samples += len(dt)
@@ -291,9 +303,9 @@ class Preintegration(Operator):
         inc.force = inc.force + np.sum((f @ self.level.T)[:, 0:2] * dt[:, None], axis=0)
         self.attitude = self.epoch_attitude @ current
 
-    def _propagate(self, cov: np.ndarray, steps, rotations, f, dt) -> np.ndarray:
+    def _propagate(self, cov: np.ndarray, steps, rotations, f, dt, gyro_rthz: float, accel_rthz: float) -> np.ndarray:
         """Forster's error-state covariance propagation through each sample (9x9 per step, composed
-        a whole interval at a time)."""
+        a whole interval at a time), with these noise densities (the larger of told and measured)."""
         n = len(dt)
         rf = np.einsum("kij,kjl->kil", rotations, skew_batch(f))
         a = np.zeros((n, 9, 9))
@@ -306,8 +318,8 @@ class Preintegration(Operator):
         safe = np.maximum(dt, 1e-6)
         b = np.concatenate([rotations * dt[:, None, None], 0.5 * rotations * (dt**2)[:, None, None]], axis=1)
         noise = np.zeros((n, 9, 9))
-        noise[:, 3:9, 3:9] = b @ b.transpose(0, 2, 1) * (self.params.accel_noise_m_s2_rthz**2 / safe)[:, None, None]
-        noise[:, 0:3, 0:3] = np.eye(3) * (self.params.gyro_noise_rad_s_rthz**2 / safe * dt**2)[:, None, None]
+        noise[:, 3:9, 3:9] = b @ b.transpose(0, 2, 1) * (accel_rthz**2 / safe)[:, None, None]
+        noise[:, 0:3, 0:3] = np.eye(3) * (gyro_rthz**2 / safe * dt**2)[:, None, None]
         return propagated(cov, a, noise)
 
     def _epoch(self, stamp: int):
@@ -367,6 +379,17 @@ class Preintegration(Operator):
                 "preintegration: the IMU stream ended during the stationary start (%d samples)", len(self.still)
             )
         log.info("preintegration: %d interval(s) turning in place", self.turns)
+        if self.noise is not None and self.nominal_dt:
+            gyro, accel = self.noise.worst * math.sqrt(self.nominal_dt)
+            p = self.params
+            log.info(
+                "preintegration: IMU noise measured on its samples, at most gyro %.4f deg/s/rtHz (told %.4f), "
+                "accelerometer %.5f m/s^2/rtHz (told %.5f): the odometry's covariance used the larger",
+                math.degrees(gyro),
+                math.degrees(p.gyro_noise_rad_s_rthz),
+                accel,
+                p.accel_noise_m_s2_rthz,
+            )
         if self.tracker is not None:
             log.info(
                 "preintegration: gyro bias re-estimated on %d still span(s), now %s rad/s",
