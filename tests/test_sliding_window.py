@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 
 import numpy as np
@@ -11,7 +12,7 @@ from test_jumps import burst_candidates
 
 from rover.operators.slam.layout import prior_tag
 from rover.operators.slam.sliding_window import SlidingWindow, WindowSettings
-from rover.operators.slam.tag_finder import SEARCH_HISTORY
+from rover.operators.slam.tag_finder import CHECK_EVERY, SEARCH_HISTORY
 
 
 def test_noise_free_matches_truth_to_millimetres():
@@ -379,3 +380,44 @@ def test_a_tags_prior_scaled_down_and_back_is_as_it_was():
     back = down.relaxed(tag, 4.0)
     np.testing.assert_allclose(back.info, before.info, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(back.grad, before.grad, rtol=1e-12, atol=1e-12)
+
+
+def checked_after_moving(place_offset_m: np.ndarray, **search: float):
+    """A tag with once-per-run jumps found and in use (15 s of arc); then its estimate set
+    `place_offset_m` from where the window had it (as chosen candidates fitting a wrong place would
+    hold it) and a check search due and run, with `search` overriding the search settings."""
+    sc, w, _ = run_with_jumps(np.full(150, 3))
+    t = w.tag_ids.index(1)
+    assert w.active[t] and len(w.finder.found) == 1
+    w.finder.search = dataclasses.replace(w.finder.search, **search)
+    before = w.tag_positions()[t] + place_offset_m
+    w.x[w.shape.tag(t)] = before
+    w.finder.checked[t] = w.finder.heard[t] - CHECK_EVERY
+    assert w.find_tags() > 0 and w.finder.searching is None
+    return sc, w, t, before
+
+
+def test_a_check_search_moves_a_tag_in_use_whose_place_its_bearings_contradict():
+    """Every CHECK_EVERY bearings the search runs again over a tag in use, every candidate weighed:
+    a place 2 m off, which the window's chosen candidates would hold, is contradicted, and where the
+    search's own place is clear the tag is put there, as a found tag."""
+    sc, w, t, before = checked_after_moving(np.array([2.0, -1.0]))
+    assert len(w.finder.found) == 2, "placed again"
+    assert np.linalg.norm(w.tag_positions()[t] - sc.tags[0]) < 0.16
+    assert t not in w.integrity.doubts
+
+
+def test_a_contradicted_tag_the_search_cannot_settle_is_not_published():
+    """The same, with a search that cannot call its own place clear (it would need every bearing an
+    inlier): the tag stays where the window had it, and says why it is not localized."""
+    _, w, t, before = checked_after_moving(np.array([2.0, -1.0]), min_inliers=1.01)
+    assert len(w.finder.found) == 1
+    np.testing.assert_array_equal(w.tag_positions()[t], before)
+    reason = w.integrity.verdict(t)
+    assert reason is not None and reason.startswith("a search over its") and "m away" in reason
+
+
+def test_a_check_search_leaves_a_right_place_alone():
+    sc, w, t, before = checked_after_moving(np.zeros(2))
+    assert len(w.finder.found) == 1 and t not in w.integrity.doubts
+    np.testing.assert_array_equal(w.tag_positions()[t], before)

@@ -55,7 +55,8 @@ bearings that pull the robot pull those positions with the tag, so every leave-o
 agrees. So a tag's weight is not lowered while its estimate is on its way (moved since the last
 jackknife by more than one std of what the jackknives allow: `_reweigh`).
 
-And a tag is published as localized only once it has a verdict (`TagIntegrity.verdict`):
+And a tag is published as localized only once it has a verdict (`TagIntegrity.verdict`): no
+check search over all its candidates contradicts its place (`doubt`, tag_finder.contradiction),
 MIN_VERDICT_BEARINGS of its bearings left the window and were judged, they span MIN_PARALLAX_DEG
 seen from the estimate, the estimate explains them (at most half beyond 3 of their stds:
 MAX_VARIANCE_FACTOR), and they were taken from MIN_CELLS places, so that the jackknife has checked
@@ -284,6 +285,16 @@ class TagIntegrity:
     """per slot: how much the window multiplies its bearings' variance, so that its covariance is
     the jackknives' (`judge`): bearings that err alike carry that much less information, and the
     robot's poses as well as the tag's place must weigh them so"""
+    doubts: dict[int, str] = field(default_factory=dict)
+    """per slot: why the latest check search over its bearings contradicts its place (`doubt`)"""
+
+    def doubt(self, tag_slot: int, reason: str | None) -> None:
+        """What the latest check search over the tag's bearings says of its place (tag_finder's
+        `contradiction`; None: nothing against it). A contradicted tag is not published localized."""
+        if reason is None:
+            self.doubts.pop(tag_slot, None)
+        else:
+            self.doubts[tag_slot] = reason
 
     def start(self, tag_slot: int, robot: np.ndarray, angles: np.ndarray, stds: np.ndarray) -> None:
         """A tag found by the search: its bearings that already left the window, as the search chose
@@ -368,6 +379,8 @@ class TagIntegrity:
 
     def verdict(self, tag_slot: int) -> str | None:
         """Why the tag may not be published as localized whatever its covariance (None: it may)."""
+        if (doubt := self.doubts.get(tag_slot)) is not None:
+            return doubt
         if tag_slot not in self.parallax:
             left = len(self.seen.get(tag_slot, []))
             return f"{left} of its bearings left the window, {MIN_VERDICT_BEARINGS} needed to judge it"

@@ -59,7 +59,7 @@ from rover.operators.slam.layout import (
 )
 from rover.operators.slam.marginalization import Leaving, Prior, marginalize_oldest
 from rover.operators.slam.settings import WindowSettings
-from rover.operators.slam.tag_finder import TagFinder, found_tag_info, gone_bearings
+from rover.operators.slam.tag_finder import Search, TagFinder, found_tag_info, gone_bearings
 from rover.operators.slam.tag_search import Found
 from rover.operators.slam.window_program import Program, SolverFailed, UpdateData, WindowProgram, edge_matrix
 
@@ -346,16 +346,36 @@ class SlidingWindow:
                 next(finder.searching.steps)
             except StopIteration as done:
                 run, finder.searching = finder.searching, None
+                if run.check:
+                    self._checked(run, done.value)
+                    continue
                 finder.last[run.tag] = done.value
                 if done.value is not None and done.value.clear(finder.search):
-                    oldest = self.epochs[0].stamp_ns if self.epochs else 0
-                    s = self.settings
-                    info = found_tag_info(run, done.value, oldest, s.tag_prior_std_m, s.aoa_std_scale)
-                    self._activate(run.tag, done.value, info, run.bearings.jumps)
-                    robot, angles, stds = gone_bearings(run, done.value, oldest)
-                    self.integrity.start(run.tag, robot, angles, stds * s.aoa_std_scale)
-                    finder.settle(self.tag_ids[run.tag], run, done.value)
+                    self._place(run, done.value)
         return taken
+
+    def _checked(self, run: Search, found: Found | None) -> None:
+        """A check search over a tag in use ended (TagFinder.contradiction). Put elsewhere decisively
+        by a search whose place is clear, the tag is put there as a found tag is, its jump history
+        started again from the search's choices; otherwise doubted (put elsewhere, or another place
+        fitting as well), it is not published as localized until a check finds its place the
+        search's best (`TagIntegrity.doubt`)."""
+        t = run.tag
+        doubt = self.finder.contradiction(run, found, self.x[self.shape.tag(t)])
+        if doubt is not None and doubt.decisive and found is not None and found.clear(self.finder.search):
+            self._place(run, found)  # where the search puts it, on the evidence a found tag needs
+            doubt = None
+        self.integrity.doubt(t, None if doubt is None else doubt.reason)
+
+    def _place(self, run: Search, found: Found) -> None:
+        """Put the tag the search found in use at its place (also after a check moved it)."""
+        oldest = self.epochs[0].stamp_ns if self.epochs else 0
+        s = self.settings
+        info = found_tag_info(run, found, oldest, s.tag_prior_std_m, s.aoa_std_scale)
+        self._activate(run.tag, found, info, run.bearings.jumps)
+        robot, angles, stds = gone_bearings(run, found, oldest)
+        self.integrity.start(run.tag, robot, angles, stds * s.aoa_std_scale)
+        self.finder.settle(self.tag_ids[run.tag], run, found)
 
     def _activate(self, t: int, found: Found, info: np.ndarray, jumps: np.ndarray) -> None:
         """Put a found tag in use: at its position, with `info` as its prior, and its bearings' jump

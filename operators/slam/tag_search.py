@@ -286,3 +286,8 @@ def _search_steps(b: Bearings, s: SearchSettings) -> Generator[None, None, Found
 def _reach(robot_xy: np.ndarray, position: np.ndarray, s: SearchSettings) -> float:
     """How far from a position another hypothesis must be to be a different place."""
     return max(s.separation_m, 0.2 * float(np.median(np.linalg.norm(robot_xy - position, axis=1))))
+
+
+def elsewhere(robot_xy: np.ndarray, position: np.ndarray, other: np.ndarray, s: SearchSettings) -> bool:
+    """Whether `other` is a different place from `position`, seen from robot positions (n, 2)."""
+    return float(np.linalg.norm(other - position)) > _reach(robot_xy, position, s)
