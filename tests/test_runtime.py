@@ -277,37 +277,48 @@ operators:
     assert len(read_bag(tmp_path / "out" / "results.mcap")) == 5
 
 
+def recorded_without_drops(tmp_path, pipeline_text: str, timeout_s: int) -> list:
+    """Run a pipeline whose recorder writes `out`: it must end well with nothing dropped; what it recorded."""
+    pipeline = tmp_path / "pipeline.yaml"
+    pipeline.write_text(pipeline_text)
+    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=timeout_s)
+    assert proc.returncode == 0 and "dropped" not in proc.stderr, proc.stderr
+    return read_bag(tmp_path / "out" / "results.mcap")
+
+
 def test_what_a_host_built_is_kept_out_of_the_collectors_passes_while_it_runs(tmp_path):
     """A full pass over a host's modules and operators took 74-167 ms mid-run: longer than a dwell."""
-    pipeline = tmp_path / "frozen.yaml"
-    pipeline.write_text("""\
+    recorded = recorded_without_drops(
+        tmp_path,
+        """\
 name: frozen
 operators:
   tick:   {uses: toyops.Ticker, params: {rate_hz: 1000, count: 9}}
   check:  {uses: toyops.FrozenCheck, inputs: {imu: tick/imu}}
   record: {uses: recorder, inputs: {imu: check/imu}, params: {out: out}}
-""")
-    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=60)
-    assert proc.returncode == 0 and "dropped" not in proc.stderr, proc.stderr
-    assert len(read_bag(tmp_path / "out" / "results.mcap")) == 9
+""",
+        60,
+    )
+    assert len(recorded) == 9
 
 
 def test_an_operator_does_its_work_ahead_while_no_input_waits(tmp_path):
     """The SLAM computes its tag search's steps ahead while it waits for an input: the runtime calls
     `on_idle` for as long as the operator has such work (`has_idle_work`) and none waits (the
     ticker sends its next message only once the work is done: in 10 s, or it counts a drop)."""
-    pipeline = tmp_path / "ahead.yaml"
-    pipeline.write_text("""\
+    recorded = recorded_without_drops(
+        tmp_path,
+        """\
 name: ahead
 workers: 1
 operators:
   tick:   {uses: toyops.GatedTicker, params: {rate_hz: 1000, count: 5}}
   ahead:  {uses: toyops.AheadWork, inputs: {imu: tick/imu}}
   record: {uses: recorder, inputs: {imu: ahead/imu}, params: {out: out}}
-""")
-    proc = run_rover("run", str(pipeline), cwd=tmp_path, timeout=120)
-    assert proc.returncode == 0 and "dropped" not in proc.stderr, proc.stderr
-    assert len(read_bag(tmp_path / "out" / "results.mcap")) == 5
+""",
+        120,
+    )
+    assert len(recorded) == 5
 
 
 def test_the_profile_says_where_each_operators_time_went(tmp_path):
