@@ -4,7 +4,7 @@ The tag search is spread over epochs a few steps at a time (SEARCH_STEPS_PER_EPO
 search starts and ends at the same epochs however fast the machine is: a replay gives the live
 run's outputs. Taken inline, those steps delay the next epoch by their whole cost (20-50 ms on a
 live laptop, as long as a dwell). While the operator waits for its next input it computes them
-ahead (`Operator.on_idle`), on its own thread: the epoch that takes them then finds them done.
+ahead (`Operator.on_idle`), in its own thread: the epoch that takes them then finds them done.
 (A thread of their own was tried: it held the interpreter lock against the operator's update
 and sent the live poses later, not sooner.)"""
 
