@@ -12,8 +12,9 @@ motion hardly changes its slope from one sample to the next (a constant angular 
 acceleration leaves no second difference), while white noise of std s per sample leaves one of
 variance 6 s^2. The mean of their squares over WINDOW_S, the largest tenth left out (a bump),
 gives s, and s * sqrt(dt) the density (a median, tried first, is the noisier estimate: a shaking
-IMU's yaw variance came out 24% high with it, within a fifth with this). The covariance uses the larger of that and the density told: a shake that is real
-motion (integrated as it is) only makes it cautious, never overconfident.
+IMU's yaw variance came out 24% high with it, within a fifth with this). The covariance uses the
+larger of that and the density told: a shake that is real motion (integrated as it is) only makes
+it cautious, never overconfident.
 """
 
 from __future__ import annotations
