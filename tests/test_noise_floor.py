@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from helpers import reference_data
 
 from rover.operators.preintegration.noise_floor import MIN_SAMPLES, NoiseFloor
 
@@ -85,11 +84,6 @@ def test_only_the_latest_samples_count():
     assert floor.stds() == pytest.approx([0.001, 0.002], rel=0.15)
 
 
-DATA = Path(os.environ.get("ROVER_TEST_DATA", "../shared/data"))
-JACKAL = DATA / "bags" / "jackal_imu_odom.bag"
-
-
-@pytest.mark.skipif(not JACKAL.exists(), reason=f"the reference data's real Jackal bag ({JACKAL}; ROVER_TEST_DATA)")
 def test_a_real_jackal_imu_is_far_noisier_than_a_datasheet():
     """The real ROS 1 bag of a Jackal driving (50 Hz, 61 s), its samples taken 10 at a time as
     epochs would: while it drives its gyro's vertical axis and its accelerometer read ten times and
@@ -101,7 +95,7 @@ def test_a_real_jackal_imu_is_far_noisier_than_a_datasheet():
 
     store = get_typestore(Stores.ROS1_NOETIC)
     gyro, accel = [], []
-    with Reader(JACKAL) as bag:
+    with Reader(reference_data() / "bags" / "jackal_imu_odom.bag") as bag:
         for c, _t, raw in bag.messages(connections=[c for c in bag.connections if c.topic == "/imu/data"]):
             msg: Any = store.deserialize_ros1(raw, c.msgtype)
             gyro.append([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])

@@ -59,8 +59,8 @@ from rover.operators.slam.layout import (
 )
 from rover.operators.slam.marginalization import Leaving, Prior, marginalize_oldest
 from rover.operators.slam.settings import WindowSettings
-from rover.operators.slam.tag_finder import Search, TagFinder, found_tag_info, gone_bearings
-from rover.operators.slam.tag_search import Found
+from rover.operators.slam.tag_finder import TagFinder
+from rover.operators.slam.tag_placement import find_tags
 from rover.operators.slam.window_program import Program, SolverFailed, UpdateData, WindowProgram, edge_matrix
 
 __all__ = ["Edge", "Epoch", "SlidingWindow", "Update", "WindowSettings", "bias_jacobian"]
@@ -323,75 +323,10 @@ class SlidingWindow:
             e.choice, e.doubt = new.choice[at], new.doubt[at]
 
     def find_tags(self, steps: int | None = None) -> int:
-        """Advance the searches for the tags waiting for their position by at most `steps` steps
-        (None: until every search due has run); returns the steps taken. The tag waiting longest goes
-        first, one search at a time, each from the robot positions of when it started; a tag found
-        is in use from the next update (TagFinder).
-
-        Done between updates, not in them, a few steps at a time (tag_search.search_steps): a
-        whole search costs several updates' time, and no pose need wait for it. Steps computed
-        ahead (StepsAhead.ahead, in the operator's idle time) are taken here at no cost."""
-        finder = self.finder
-        taken = 0
-        while steps is None or taken < steps:
-            if finder.searching is None:
-                xy = positions(self.x, len(self.epochs))
-                finder.searching = finder.next_search(
-                    {e.stamp_ns: xy[k] for k, e in enumerate(self.epochs)}, self.active
-                )
-                if finder.searching is None:
-                    break
-            taken += 1
-            try:
-                next(finder.searching.steps)
-            except StopIteration as done:
-                run, finder.searching = finder.searching, None
-                if run.check:
-                    self._checked(run, done.value)
-                    continue
-                finder.last[run.tag] = done.value
-                if done.value is not None and done.value.clear(finder.search):
-                    self._place(run, done.value)
-        return taken
-
-    def _checked(self, run: Search, found: Found | None) -> None:
-        """A check search over a tag in use ended (TagFinder.contradiction). Put elsewhere decisively
-        by a search whose place is clear, the tag is put there as a found tag is, its jump history
-        started again from the search's choices; otherwise doubted (put elsewhere, or another place
-        fitting as well), it is not published as localized until a check finds its place the
-        search's best (`TagIntegrity.doubt`)."""
-        t = run.tag
-        doubt = self.finder.contradiction(run, found, self.x[self.shape.tag(t)])
-        if doubt is not None and doubt.decisive and found is not None and found.clear(self.finder.search):
-            self._place(run, found)  # where the search puts it, on the evidence a found tag needs
-            doubt = None
-        self.integrity.doubt(t, None if doubt is None else doubt.reason)
-
-    def _place(self, run: Search, found: Found) -> None:
-        """Put the tag the search found in use at its place (also after a check moved it)."""
-        oldest = self.epochs[0].stamp_ns if self.epochs else 0
-        s = self.settings
-        info = found_tag_info(run, found, oldest, s.tag_prior_std_m, s.aoa_std_scale)
-        self._activate(run.tag, found, info, run.bearings.jumps)
-        robot, angles, stds = gone_bearings(run, found, oldest)
-        self.integrity.start(run.tag, robot, angles, stds * s.aoa_std_scale)
-        self.finder.settle(self.tag_ids[run.tag], run, found)
-
-    def _activate(self, t: int, found: Found, info: np.ndarray, jumps: np.ndarray) -> None:
-        """Put a found tag in use: at its position, with `info` as its prior, and its bearings' jump
-        combinations as the first history of its jump state."""
-        self.x[self.shape.tag(t)] = found.position
-        p = self._prior
-        at = np.arange(p.info.shape[0])[prior_tag(t)]
-        p.info[at, :] = 0.0
-        p.info[:, at] = 0.0
-        p.info[np.ix_(at, at)] = info
-        p.mean[at] = found.position
-        p.grad[at] = 0.0
-        self.active[t] = True
-        self.finder.placed[t] = len(self.finals) + len(self.epochs)
-        inlier = found.choice >= 0
-        self.jumps.start(t, jumps[np.flatnonzero(inlier), found.choice[inlier]])  # the search's evidence
+        """Advance the tag searches due (a waiting tag's, or the check of a tag in use) by at most
+        `steps` steps (None: until every search due has run); returns the steps taken
+        (tag_placement.find_tags: what a search ends in is applied there)."""
+        return find_tags(self, steps)
 
     def _offsets(self, x: np.ndarray, epoch: np.ndarray, tag: np.ndarray) -> np.ndarray:
         """Robot-to-tag vectors b - mu per slot."""
